@@ -1,0 +1,337 @@
+"""The cyclic runtime: bus time, FAS/MED/SLO ticks, channels and blocks.
+
+The runtime is driven by frames, never by the wall clock. Frames are applied in
+timestamp order; before a frame stamped ``ts`` is applied, every tick due strictly before
+``ts`` runs, so at each tick an input's value is the latest frame value at or before the
+tick. The same object runs live (:mod:`cell.live`) and offline (:mod:`cell.replay`), so a
+log replayed at any speed gives the numbers the live cell gave.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import threading
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import can
+
+from .blocks import RATE_NAMES, Block
+from .channels import INVALID, OK, STALE, Channel
+from .dbc import DECODE_ERROR_KINDS, CellDatabase, FrameDecodeError
+from .errors import ConfigError, ParamError, UnknownBlockError
+
+_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class Rates:
+    """Tick rates in Hz of the three cyclic tasks (seed 004: 50/10/1 Hz)."""
+
+    FAS: float = 50.0
+    MED: float = 10.0
+    SLO: float = 1.0
+
+    @classmethod
+    def parse(cls, spec: str | None) -> Rates:
+        """Parse ``--cycle``: a number sets MED in Hz; ``FAS=50,MED=10,SLO=1`` sets any of them."""
+        if spec is None or str(spec).strip() == "":
+            return cls()
+        spec = str(spec).strip()
+        values: dict[str, float] = {}
+        parts = [p.strip() for p in spec.split(",")]
+        for part in parts:
+            name, sep, text = part.partition("=")
+            if not sep:
+                name, text = "MED", part
+            name = name.strip().upper()
+            if name not in RATE_NAMES:
+                raise ConfigError(f"--cycle {spec!r}: unknown task {name!r}; use FAS, MED or SLO")
+            try:
+                hz = float(text)
+            except ValueError:
+                raise ConfigError(f"--cycle {spec!r}: {name} rate {text!r} is not a number") from None
+            if not math.isfinite(hz) or not 0.01 <= hz <= 1000:
+                raise ConfigError(f"--cycle {spec!r}: {name} rate must be 0.01..1000 Hz, got {text}")
+            values[name] = hz
+        return cls(**values)
+
+    def period(self, name: str) -> float:
+        return 1.0 / getattr(self, name)
+
+
+class Runtime:
+    """Channels, blocks and the tick scheduler of one cell.
+
+    Parameters
+    ----------
+    db:
+        The DBC codec; decides units, staleness and which outputs go on the bus.
+    blocks:
+        Blocks to run, stepped in the order given within each tick.
+    rates:
+        FAS/MED/SLO rates. History and output rows are taken at MED ticks.
+    history_s:
+        Length of each channel's history ring buffer, in seconds of bus time.
+    """
+
+    def __init__(
+        self,
+        db: CellDatabase,
+        blocks: Iterable[Block] = (),
+        rates: Rates | None = None,
+        history_s: float = 600.0,
+    ) -> None:
+        self.db = db
+        self.rates = rates or Rates()
+        self.lock = threading.RLock()
+        self.history_len = max(1, int(round(history_s * self.rates.MED)))
+        self.channels: dict[str, Channel] = {}
+        self.blocks: dict[str, Block] = {}
+        self.producer: dict[str, str] = {}
+        self.outbox: list[can.Message] = []
+        self.tick_listeners: list[Callable[[float], None]] = []
+        self.frames = 0
+        self.late_frames = 0
+        self.decode_errors: collections.Counter[str] = collections.Counter(
+            {k: 0 for k in DECODE_ERROR_KINDS}
+        )
+        self.block_errors: collections.Counter[str] = collections.Counter()
+        self.last_frame_time: float | None = None
+        self.last_tick_time: float | None = None
+        self._frame_times: collections.deque[float] = collections.deque(maxlen=20_000)
+        self._next_index: dict[str, int] | None = None
+        self._stale_floor = 2.5 / self.rates.MED
+        for block in blocks:
+            self.add_block(block)
+
+    # -- blocks ---------------------------------------------------------------------
+    def add_block(self, block: Block) -> None:
+        """Add a block; refuse one whose outputs another producer already owns."""
+        with self.lock:
+            if block.name in self.blocks:
+                raise ConfigError(f"a block named {block.name!r} already exists")
+            for out in block.outputs:
+                owner = self.producer.get(out)
+                if owner is not None:
+                    raise ConfigError(
+                        f"{block.name} cannot produce {out}: {owner} already produces it"
+                    )
+                info = self.db.signals.get(out)
+                if info is not None and self.db.message(info.message).senders != ["RUNTIME"]:
+                    raise ConfigError(
+                        f"{block.name} cannot produce {out}: it is a bus input sent by "
+                        f"{', '.join(self.db.message(info.message).senders) or 'another node'}"
+                    )
+            self.blocks[block.name] = block
+            for out in block.outputs:
+                self.producer[out] = block.name
+                unit = self.db.signals[out].unit if out in self.db.signals else ""
+                ch = self._channel(out, source=block.name)
+                ch.unit = ch.unit or unit
+
+    def remove_block(self, name: str) -> Block:
+        with self.lock:
+            block = self.block(name)
+            del self.blocks[name]
+            for out in block.outputs:
+                self.producer.pop(out, None)
+                self.channels.pop(out, None)
+            return block
+
+    def block(self, name: str, family: str | None = None) -> Block:
+        block = self.blocks.get(name)
+        if block is None or (family is not None and block.family != family):
+            known = [b.name for b in self.blocks.values() if family is None or b.family == family]
+            raise UnknownBlockError(family or "block", name, known)
+        return block
+
+    def set_params(self, name: str, changes: dict[str, Any], family: str | None = None) -> dict:
+        """Validate and apply a parameter change; it takes effect at the next tick."""
+        with self.lock:
+            return self.block(name, family).set_params(changes)
+
+    # -- channels -------------------------------------------------------------------
+    def _channel(self, name: str, source: str = "bus") -> Channel:
+        ch = self.channels.get(name)
+        if ch is None:
+            info = self.db.signals.get(name)
+            stale_after = math.inf
+            if source == "bus":
+                cycle = info.cycle_time_s if info and info.cycle_time_s else 0.0
+                stale_after = max(2.5 * cycle, self._stale_floor)
+            ch = Channel(
+                name=name,
+                unit=info.unit if info else "",
+                source=source,
+                stale_after=stale_after,
+                history=collections.deque(maxlen=self.history_len),
+            )
+            self.channels[name] = ch
+        return ch
+
+    @property
+    def now(self) -> float | None:
+        """The runtime's bus time: the later of the last frame and the last tick."""
+        times = [t for t in (self.last_frame_time, self.last_tick_time) if t is not None]
+        return max(times) if times else None
+
+    def frames_per_second(self, window_s: float = 1.0) -> float:
+        """Frame rate over the last ``window_s`` seconds of bus time."""
+        with self.lock:
+            if not self._frame_times:
+                return 0.0
+            end = self.now
+            count = sum(1 for t in reversed(self._frame_times) if t > end - window_s)
+            return count / window_s
+
+    # -- frames and ticks -----------------------------------------------------------
+    def ingest(self, msg: can.Message) -> None:
+        """Apply one received frame at its bus time, after the ticks due before it."""
+        with self.lock:
+            ts = float(msg.timestamp)
+            self._run_ticks(ts, inclusive=False)
+            self.frames += 1
+            self._frame_times.append(ts)
+            if self.last_frame_time is not None and ts < self.last_frame_time:
+                self.late_frames += 1
+            self.last_frame_time = ts if self.last_frame_time is None else max(ts, self.last_frame_time)
+            try:
+                _, values = self.db.decode(msg)
+            except FrameDecodeError as exc:
+                self.decode_errors[exc.kind] += 1
+                return
+            for name, value in values.items():
+                if self.producer.get(name):
+                    continue  # our own output seen on the bus (e.g. a second runtime's)
+                ch = self._channel(name)
+                if ch.t is None or ts >= ch.t:
+                    ch.update(value, ts)
+
+    def advance(self, t: float) -> None:
+        """Run every tick due at or before bus time ``t`` (end of a log, or a silent bus)."""
+        with self.lock:
+            self._run_ticks(t, inclusive=True)
+
+    def _run_ticks(self, until: float, inclusive: bool) -> None:
+        if self._next_index is None:
+            # first time seen: the first tick of each task is the first grid point at or after it
+            self._next_index = {
+                r: math.ceil(until * getattr(self.rates, r) - _EPS) for r in RATE_NAMES
+            }
+        while True:
+            due = []
+            for r in RATE_NAMES:
+                t = self._next_index[r] / getattr(self.rates, r)
+                if t < until - _EPS or (inclusive and t <= until + _EPS):
+                    due.append((t, r))
+            if not due:
+                return
+            t = min(d[0] for d in due)
+            ticking = frozenset(r for (tt, r) in due if abs(tt - t) <= _EPS)
+            for r in ticking:
+                self._next_index[r] += 1
+            self._tick(ticking, t)
+            self.last_tick_time = t
+            if "MED" in ticking:
+                self._after_med_tick(t)
+
+    def _tick(self, ticking: frozenset[str], t: float) -> None:
+        updated: set[str] = set()
+        for block in list(self.blocks.values()):
+            if ticking.isdisjoint(block.rates):
+                continue
+            values: dict[str, float] = {}
+            bad: tuple[str, str] | None = None
+            for name in block.inputs:
+                ch = self.channels.get(name)
+                if ch is None:
+                    bad = (STALE, f"input {name} has no value yet")
+                    break
+                status, reason = ch.status_at(t)
+                if status != OK:
+                    bad = (status, f"input {name} is {status}: {reason}")
+                    break
+                values[name] = ch.value  # type: ignore[assignment]
+            if bad is not None:
+                for out in block.outputs:
+                    self.channels[out].mark(*bad)
+                continue
+            try:
+                outputs = block.step(t, values, ticking)
+            except ArithmeticError as exc:
+                self.block_errors[block.name] += 1
+                for out in block.outputs:
+                    self.channels[out].mark(INVALID, f"{type(exc).__name__}: {exc}")
+                continue
+            reasons = block.errors
+            for out, value in outputs.items():
+                ch = self.channels[out]
+                ch.update(float(value), t)
+                if ch.status != OK:
+                    self.block_errors[block.name] += 1
+                    if out in reasons:
+                        ch.mark(INVALID, reasons[out])
+                updated.add(out)
+        if updated:
+            self._emit(updated, t)
+
+    def _emit(self, updated: set[str], t: float) -> None:
+        """Queue a DBC frame for each output message that carries an updated signal."""
+        for message in self.db.messages_carrying(set(self.producer)):
+            names = [s.name for s in message.signals]
+            if not updated.intersection(names):
+                continue
+            chans = [self.channels[n] for n in names]
+            if any(c.status != OK or c.value is None for c in chans):
+                continue  # a stale or invalid output is not put on the bus
+            self.outbox.append(self.db.encode(message.name, {c.name: c.value for c in chans}, t))
+
+    def _after_med_tick(self, t: float) -> None:
+        for ch in self.channels.values():
+            status, _ = ch.status_at(t)
+            ch.history.append((t, ch.value if status == OK else None, status))
+        for listener in self.tick_listeners:
+            listener(t)
+
+    def take_outbox(self) -> list[can.Message]:
+        with self.lock:
+            out, self.outbox = self.outbox, []
+            return out
+
+    # -- views ----------------------------------------------------------------------
+    def snapshot(self) -> list[dict[str, Any]]:
+        with self.lock:
+            now = self.now
+            return [ch.snapshot(now) for ch in sorted(self.channels.values(), key=lambda c: c.name)]
+
+    def channel(self, name: str) -> Channel:
+        ch = self.channels.get(name)
+        if ch is None:
+            raise UnknownBlockError("channel", name, sorted(self.channels))
+        return ch
+
+    def history(self, name: str, seconds: float) -> list[tuple[float, float | None, str]]:
+        with self.lock:
+            ch = self.channel(name)
+            if not ch.history:
+                return []
+            end = ch.history[-1][0]
+            return [p for p in ch.history if p[0] > end - seconds - _EPS]
+
+    def health(self) -> dict[str, Any]:
+        with self.lock:
+            return {
+                "frames": self.frames,
+                "frames_per_s": self.frames_per_second(),
+                "decode_errors": dict(self.decode_errors),
+                "late_frames": self.late_frames,
+                "block_errors": dict(self.block_errors),
+                "last_frame_time": self.last_frame_time,
+                "bus_time": self.now,
+            }
+
+
+__all__ = ["Rates", "Runtime", "ParamError"]

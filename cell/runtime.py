@@ -103,7 +103,8 @@ class Runtime:
         self.last_tick_time: float | None = None
         self._frame_times: collections.deque[float] = collections.deque(maxlen=20_000)
         self._next_index: dict[str, int] | None = None
-        self._stale_floor = 2.5 / self.rates.MED
+        # an input goes stale by the third MED tick after its frames stop
+        self._stale_floor = 1.5 / self.rates.MED
         for block in blocks:
             self.add_block(block)
 

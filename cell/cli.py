@@ -1,0 +1,228 @@
+"""The ``testcell`` command: ``up``, ``sim`` and ``replay``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from . import __version__
+from .errors import BusError, ConfigError, TestcellError
+
+log = logging.getLogger("testcell")
+
+
+def _positive_float(name: str):
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
+        if not v > 0 or v == float("inf"):
+            raise argparse.ArgumentTypeError(f"{name} must be a positive number, got {text!r}")
+        return v
+    return parse
+
+
+def _port(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--port must be a whole number, got {text!r}") from None
+    if not 1 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"--port must be 1..65535, got {v}")
+    return v
+
+
+def build_runtime(args: argparse.Namespace):
+    """The runtime ``up`` and ``replay`` share: the DBC, the rates and the native filters."""
+    from .dbc import load
+    from .filters import native_filters
+    from .runtime import Rates, Runtime
+
+    db = load(getattr(args, "dbc", None))
+    rt = Runtime(db, rates=Rates.parse(getattr(args, "cycle", None)))
+    for block in native_filters():
+        rt.add_block(block)
+    return rt
+
+
+# -- up ----------------------------------------------------------------------------------
+def _check_port_free(host: str, port: int) -> None:
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise ConfigError(
+                f"cannot serve on {host}:{port}: {exc.strerror}; choose another with --port"
+            ) from None
+
+
+def _start_sim_process(args: argparse.Namespace, bus: str) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "cell", "sim", "--bus", bus, "--speed", str(args.speed),
+           "--seed", str(args.seed), "--duty", args.duty]
+    if args.valve is not None:
+        cmd += ["--valve", str(args.valve)]
+    log.info("starting simulator: %s", " ".join(cmd[2:]))
+    return subprocess.Popen(cmd)
+
+
+def _stop_process(proc: subprocess.Popen | None) -> None:
+    if proc is None or proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(5)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.main import create_app
+
+    from .bus import open_bus, resolve
+    from .context import Cell
+    from .live import LiveCell
+    from .tuning import TuningStore
+
+    spec = resolve(args.bus)
+    _check_port_free(args.host, args.port)
+    runtime = build_runtime(args)
+    store = TuningStore(args.state)
+    store.load()
+    store.restore(runtime)
+    bus = open_bus(spec)
+    sim_proc = None
+    sim_thread = None
+    sim_stop = threading.Event()
+    try:
+        if not args.no_sim:
+            if spec.interface == "virtual":
+                # a virtual bus only exists inside this process: run the plant in a thread
+                from . import sim
+
+                sim_bus = open_bus(spec)
+                sim_thread = threading.Thread(
+                    target=sim.run, name="testcell-sim", daemon=True,
+                    kwargs=dict(bus=sim_bus, cycle=args.duty, seed=args.seed, speed=args.speed,
+                                initial_valve=args.valve, stop_event=sim_stop),
+                )
+                sim_thread.start()
+            else:
+                sim_proc = _start_sim_process(args, str(spec))
+        live = LiveCell(runtime, bus).start()
+        cell = Cell(runtime=runtime, bus=str(spec), tuning=store, live=live)
+        log.info("testcell %s on %s; API on http://%s:%d (tuning file %s)",
+                 __version__, spec, args.host, args.port, store.path)
+        uvicorn.run(create_app(cell), host=args.host, port=args.port,
+                    log_level=args.log_level.lower())
+        live.stop()
+    finally:
+        sim_stop.set()
+        _stop_process(sim_proc)
+        if sim_thread is not None:
+            sim_thread.join(2)
+        bus.shutdown()
+    return 0
+
+
+# -- replay ------------------------------------------------------------------------------
+def cmd_replay(args: argparse.Namespace) -> int:
+    from .replay import replay
+
+    runtime = build_runtime(args)
+    channels = [c.strip() for c in args.channels.split(",") if c.strip()] if args.channels else None
+    result = replay(runtime, args.log, args.out, channels=channels,
+                    progress=False if args.quiet else None)
+    print(f"{args.log}: {result.frames} frames, {len(result.rows)} ticks -> {args.out}",
+          file=sys.stderr)
+    if result.error is not None:
+        print(f"testcell replay: stopped at {result.error}; rows up to it were written to "
+              f"{args.out}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from . import sim
+
+    return sim.main(args)
+
+
+# -- parser ------------------------------------------------------------------------------
+def _common_runtime_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--cycle", default=None, metavar="HZ|FAS=..,MED=..,SLO=..",
+                   help="task rates in Hz: a number sets MED (default 10); or name any of "
+                        "FAS/MED/SLO (defaults 50/10/1)")
+    p.add_argument("--dbc", default=None, help="DBC file (default: the cell's dbc/testcell.dbc)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="testcell", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"testcell {__version__}")
+    parser.add_argument("--log-level", default="INFO",
+                        choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    up = sub.add_parser("up", help="start the simulator and the runtime with its HTTP API")
+    up.add_argument("--bus", default=None,
+                    help="auto (default), virtual, udp_multicast, socketcan or INTERFACE:CHANNEL; "
+                         "CAN_INTERFACE/CAN_CHANNEL are honoured")
+    up.add_argument("--host", default="127.0.0.1")
+    up.add_argument("--port", type=_port, default=8000)
+    up.add_argument("--no-sim", action="store_true", help="attach to an existing bus, no simulator")
+    up.add_argument("--speed", type=_positive_float("--speed"), default=1.0,
+                    help="run the simulator N times faster than real time")
+    up.add_argument("--seed", type=int, default=0, help="simulator noise seed")
+    up.add_argument("--duty", default="rated", choices=["rated", "warmup", "transient"],
+                    help="simulator duty cycle")
+    up.add_argument("--valve", type=float, default=None,
+                    help="simulator valve opening %% until a demand arrives")
+    up.add_argument("--state", default=None, type=Path,
+                    help="tuning file (default $XDG_STATE_HOME/testcell/tuning.json)")
+    _common_runtime_options(up)
+    up.set_defaults(func=cmd_up)
+
+    sim = sub.add_parser("sim", help="run the plant simulator on the bus (or write a log)")
+    from . import sim as sim_module
+
+    sim_module.add_arguments(sim)
+    sim.set_defaults(func=cmd_sim)
+
+    rp = sub.add_parser("replay", help="run the runtime offline over a CAN log, write CSV")
+    rp.add_argument("log", help="CAN log: candump -L .log, .asc, .blf, .trc or python-can .csv")
+    rp.add_argument("--out", required=True, help="output CSV: time, then one column per channel")
+    rp.add_argument("--channels", default=None, help="comma-separated channels to write")
+    rp.add_argument("--quiet", action="store_true", help="no progress bar")
+    _common_runtime_options(rp)
+    rp.set_defaults(func=cmd_replay)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        return args.func(args)
+    except (BusError, ConfigError) as exc:
+        print(f"testcell {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except TestcellError as exc:
+        print(f"testcell {args.command}: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,166 @@
+"""Offline replay: the live runtime run over a recorded CAN log, one CSV row per MED tick."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+from tqdm import tqdm
+
+from .errors import ConfigError, LogFormatError
+from .runtime import Runtime
+
+#: python-can readers by suffix; text formats are read line by line so errors carry a line.
+TEXT_READERS = {
+    ".log": can.CanutilsLogReader,
+    ".asc": can.ASCReader,
+    ".csv": can.CSVReader,
+    ".trc": can.TRCReader,
+}
+
+
+class _CountingLines:
+    """A text file that counts the lines and bytes handed out, for error positions and progress."""
+
+    def __init__(self, fh: Any, progress: tqdm | None) -> None:
+        self._fh = fh
+        self.line = 0
+        self._progress = progress
+
+    def __iter__(self) -> Iterator[str]:
+        for line in self._fh:
+            self.line += 1
+            if self._progress is not None:
+                self._progress.update(len(line))
+            yield line
+
+    def readline(self) -> str:
+        line = self._fh.readline()
+        if line:
+            self.line += 1
+        return line
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._fh, name)
+
+
+def read_log(path: str | Path, progress: bool | None = None) -> Iterator[can.Message]:
+    """Yield the frames of a CAN log; a malformed line raises :class:`LogFormatError`."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"log file not found: {path}")
+    reader_cls = TEXT_READERS.get(path.suffix.lower())
+    size = os.path.getsize(path)
+    bar = tqdm(total=size, unit="B", unit_scale=True, desc=path.name, disable=progress is False
+               if progress is not None else None, leave=False)
+    try:
+        if reader_cls is None:
+            try:
+                reader = can.LogReader(str(path))
+            except ValueError as exc:
+                known = ", ".join(sorted({*TEXT_READERS, ".blf"}))
+                raise ConfigError(f"{path}: unknown log format; use one of {known}") from exc
+            for msg in reader:
+                yield msg
+            return
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            lines = _CountingLines(fh, bar)
+            reader = reader_cls(lines)
+            it = iter(reader)
+            while True:
+                try:
+                    msg = next(it)
+                except StopIteration:
+                    return
+                except (ValueError, IndexError, TypeError) as exc:
+                    raise LogFormatError(str(path), lines.line, f"malformed frame: {exc}") from exc
+                yield msg
+    finally:
+        bar.close()
+
+
+@dataclass
+class ReplayResult:
+    rows: list[list[Any]] = field(default_factory=list)
+    columns: list[str] = field(default_factory=list)
+    frames: int = 0
+    error: LogFormatError | None = None
+
+
+def replay(
+    runtime: Runtime,
+    log: str | Path,
+    out: str | Path | None = None,
+    channels: list[str] | None = None,
+    progress: bool | None = None,
+) -> ReplayResult:
+    """Run ``runtime`` over ``log`` and write one row per MED tick to ``out`` (CSV).
+
+    The first column is ``time`` (bus time, s); then one column per channel. A stale or
+    invalid value is written as an empty cell. If the log has a malformed line, the rows
+    up to it are still written, and the error is returned in the result.
+    """
+    result = ReplayResult()
+    snapshots: list[tuple[float, dict[str, float | None]]] = []
+
+    def on_tick(t: float) -> None:
+        row = {}
+        for name, ch in runtime.channels.items():
+            status, _ = ch.status_at(t)
+            row[name] = ch.value if status == "ok" else None
+        snapshots.append((t, row))
+
+    runtime.tick_listeners.append(on_tick)
+    last_ts = None
+    try:
+        for msg in read_log(log, progress=progress):
+            runtime.ingest(msg)
+            result.frames += 1
+            last_ts = msg.timestamp if last_ts is None else max(last_ts, msg.timestamp)
+    except LogFormatError as exc:
+        result.error = exc
+    finally:
+        runtime.tick_listeners.remove(on_tick)
+    if last_ts is not None:
+        runtime.tick_listeners.append(on_tick)
+        runtime.advance(last_ts)
+        runtime.tick_listeners.remove(on_tick)
+
+    seen = {name for _, row in snapshots for name, v in row.items() if v is not None}
+    if channels:
+        unknown = [c for c in channels if c not in runtime.channels]
+        if unknown:
+            raise ConfigError(
+                f"--channels: no channel {', '.join(unknown)} in this replay; "
+                f"known: {', '.join(sorted(runtime.channels))}"
+            )
+        names = list(channels)
+    else:
+        names = sorted(seen)
+    result.columns = ["time", *names]
+    result.rows = [[t, *(row.get(n) for n in names)] for t, row in snapshots]
+    if out is not None:
+        write_csv(out, result.columns, result.rows)
+    return result
+
+
+def _fmt(v: Any) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return ""
+    return repr(float(v))
+
+
+def write_csv(path: str | Path, columns: list[str], rows: list[list[Any]]) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(columns)
+        for row in rows:
+            w.writerow([f"{row[0]:.6f}", *(_fmt(v) for v in row[1:])])

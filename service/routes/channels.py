@@ -1,0 +1,48 @@
+import math
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query
+
+from ..deps import CellDep
+from ..schemas import ChannelOut, HistoryOut, HistoryPoint
+
+router = APIRouter(prefix="/channels", tags=["channels"])
+
+
+def _clean(v: Any) -> Any:
+    return v if not (isinstance(v, float) and not math.isfinite(v)) else None
+
+
+def _out(snap: dict[str, Any]) -> ChannelOut:
+    return ChannelOut(**{**snap, "value": _clean(snap["value"])})
+
+
+@router.get("", response_model=list[ChannelOut])
+def list_channels(cell: CellDep) -> list[ChannelOut]:
+    """Every channel: bus signals and block outputs, with value, unit, bus time and status."""
+    return [_out(s) for s in cell.runtime.snapshot()]
+
+
+@router.get("/{name}", response_model=ChannelOut)
+def get_channel(name: str, cell: CellDep) -> ChannelOut:
+    rt = cell.runtime
+    with rt.lock:
+        return _out(rt.channel(name).snapshot(rt.now))
+
+
+@router.get("/{name}/history", response_model=HistoryOut)
+def channel_history(
+    name: str,
+    cell: CellDep,
+    seconds: Annotated[float, Query(gt=0, le=86_400, allow_inf_nan=False,
+                                    description="how far back, in seconds of bus time")] = 60.0,
+) -> HistoryOut:
+    """The channel's values at each MED tick over the last ``seconds`` (bounded ring buffer)."""
+    rt = cell.runtime
+    points = rt.history(name, seconds)
+    return HistoryOut(
+        name=name,
+        unit=rt.channel(name).unit,
+        seconds=seconds,
+        points=[HistoryPoint(time=t, value=_clean(v), status=s) for t, v, s in points],
+    )

@@ -320,7 +320,7 @@ class Runtime:
             if not ch.history:
                 return []
             end = ch.history[-1][0]
-            return [p for p in ch.history if p[0] > end - seconds - _EPS]
+            return [p for p in ch.history if p[0] > end - seconds + _EPS]
 
     def health(self) -> dict[str, Any]:
         with self.lock:

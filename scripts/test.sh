@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# Set up (.venv, install with test dependencies) and run the whole test suite.
+# Extra arguments go to pytest. "No tests collected" is a failure, not a pass.
+set -uo pipefail
+source "$(dirname "$0")/_bootstrap.sh"
+bootstrap "[test]" || exit 1
+.venv/bin/python -m pytest "$@"
+rc=$?
+if [ "$rc" = 5 ]; then
+    echo "test.sh: pytest collected no tests; failing" >&2
+    exit 1
+fi
+exit "$rc"

@@ -1,0 +1,177 @@
+"""The HTTP API over an in-process runtime fed with frames (no bus, no wall clock)."""
+
+import json
+import math
+
+import pytest
+from fastapi.testclient import TestClient
+
+from cell.context import Cell
+from cell.filters import native_filters
+from cell.runtime import Runtime
+from cell.tuning import TuningStore
+from service.main import create_app
+
+
+def feed(rt, db, t0, t1, value=680.0):
+    t = t0
+    while t < t1 - 1e-9:
+        rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": value, "EXH_BP_R": value + 10 * math.sin(t)}, t))
+        t = round(t + 0.01, 6)
+    rt.advance(t1 - 0.01)
+
+
+@pytest.fixture
+def cell(db, tmp_path):
+    rt = Runtime(db, native_filters())
+    store = TuningStore(tmp_path / "tuning.json")
+    store.load()
+    feed(rt, db, 0.0, 20.0)
+    return Cell(runtime=rt, bus="virtual:test", tuning=store)
+
+
+@pytest.fixture
+def client(cell):
+    return TestClient(create_app(cell))
+
+
+def test_health_counts_frames_and_errors(client, cell, db):
+    import can
+
+    cell.runtime.ingest(can.Message(timestamp=20.0, arbitration_id=0x5, data=b"", is_extended_id=False))
+    h = client.get("/health").json()
+    assert h["bus"] == "virtual:test"
+    assert h["frames"] == 2001
+    assert h["decode_errors"]["unknown_id"] == 1
+    assert h["frames_per_s"] == pytest.approx(100, abs=2)
+    assert h["last_frame_time"] == pytest.approx(20.0)
+
+
+def test_channels_list_and_one(client):
+    chans = {c["name"]: c for c in client.get("/channels").json()}
+    for name in ("EXH_BP_L", "EXH_BP_R", "EXH_BP_L_MAF", "EXH_BP_R_MAF", "EXH_BP_L_Kalman", "EXH_BP_R_Kalman"):
+        assert chans[name]["status"] == "ok"
+        assert chans[name]["unit"] == "mmH2O"
+    one = client.get("/channels/EXH_BP_R_Kalman").json()
+    assert one["value"] == pytest.approx(680, abs=15)
+    assert one["source"] == "EXH_BP_R_Kalman"
+    r = client.get("/channels/NOPE")
+    assert r.status_code == 404 and "NOPE" in r.json()["detail"]
+
+
+def test_history_is_bounded_and_validated(client):
+    pts = client.get("/channels/EXH_BP_L/history", params={"seconds": 5}).json()["points"]
+    assert len(pts) == 50
+    assert all(p["status"] == "ok" for p in pts)
+    for bad in ("0", "-1", "nan", "inf", "abc", "1e9"):
+        r = client.get("/channels/EXH_BP_L/history", params={"seconds": bad})
+        assert r.status_code == 422, bad
+        assert "seconds" in json.dumps(r.json())
+    assert client.get("/channels/NOPE/history").status_code == 404
+
+
+def test_patch_kalman_takes_effect_next_tick_and_keeps_estimate(client, cell, db):
+    rt = cell.runtime
+    kal = rt.blocks["EXH_BP_R_Kalman"]
+    x, P = kal.x, kal.P
+    r = client.patch("/filters/EXH_BP_R_Kalman", json={"Q": 1e-3, "R": 2e-4})
+    assert r.status_code == 200, r.text
+    assert r.json()["params"] == {"Q": 1e-3, "R": 2e-4}
+    assert (kal.x, kal.P) == (x, P)  # no reset
+    rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 700.0, "EXH_BP_R": 700.0}, 20.0))
+    rt.advance(20.0)
+    K = (P + 1e-3) / (P + 1e-3 + 2e-4)
+    assert kal.x == pytest.approx(x + K * (700.0 - x), abs=1e-9)
+    assert json.loads(cell.tuning.path.read_text())["filters"]["EXH_BP_R_Kalman"] == {"Q": 1e-3, "R": 2e-4}
+
+
+def test_patch_moving_average_window(client, cell):
+    r = client.patch("/filters/EXH_BP_L_MAF", json={"samples": 10})
+    assert r.status_code == 200 and r.json()["params"]["samples"] == 10
+    assert r.json()["state"]["filled"] == 10
+
+
+@pytest.mark.parametrize(
+    "name,body,field",
+    [
+        ("EXH_BP_R_Kalman", {"Q": 0}, "Q"),
+        ("EXH_BP_R_Kalman", {"R": -1e-4}, "R"),
+        ("EXH_BP_R_Kalman", {"Q": "1e-6"}, "Q"),
+        ("EXH_BP_R_Kalman", {"Q": None}, "Q"),
+        ("EXH_BP_R_Kalman", {"Q": 1e-6, "gain": 2}, "gain"),
+        ("EXH_BP_R_Kalman", {"samples": 30}, "samples"),
+        ("EXH_BP_R_MAF", {"Q": 1e-6}, "Q"),
+        ("EXH_BP_R_MAF", {"samples": 0}, "samples"),
+        ("EXH_BP_R_MAF", {"samples": 12.5}, "samples"),
+        ("EXH_BP_R_MAF", {"samples": 10**9}, "samples"),
+        ("EXH_BP_R_MAF", {}, "body"),
+    ],
+)
+def test_bad_patch_is_422_naming_field_and_changes_nothing(client, cell, name, body, field):
+    before = client.get(f"/filters/{name}").json()
+    r = client.patch(f"/filters/{name}", json=body)
+    assert r.status_code == 422, r.text
+    assert field in json.dumps(r.json()["detail"])
+    after = client.get(f"/filters/{name}").json()
+    assert after["params"] == before["params"]
+    assert not cell.tuning.path.exists()
+
+
+@pytest.mark.parametrize("raw", ['{"Q": NaN}', '{"R": Infinity}', '{"Q": -Infinity}'])
+def test_non_finite_json_numbers_are_refused(client, raw):
+    r = client.patch("/filters/EXH_BP_R_Kalman", content=raw, headers={"content-type": "application/json"})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"][-1] in ("Q", "R")
+
+
+@pytest.mark.parametrize("raw", ["[1, 2]", '"Q"', "{not json", ""])
+def test_malformed_bodies_are_refused(client, raw):
+    r = client.patch("/filters/EXH_BP_R_Kalman", content=raw, headers={"content-type": "application/json"})
+    assert r.status_code == 422
+
+
+def test_unknown_filter_is_404(client):
+    r = client.patch("/filters/EXH_BP_X_Kalman", json={"Q": 1e-6})
+    assert r.status_code == 404
+    assert "EXH_BP_X_Kalman" in r.json()["detail"] and "EXH_BP_R_Kalman" in r.json()["detail"]
+    assert client.get("/filters/EXH_BP_X_Kalman").status_code == 404
+
+
+def test_tuning_survives_a_restart(db, tmp_path):
+    path = tmp_path / "state" / "tuning.json"
+    rt = Runtime(db, native_filters())
+    store = TuningStore(path)
+    store.load()
+    c = TestClient(create_app(Cell(runtime=rt, tuning=store)))
+    assert c.patch("/filters/EXH_BP_L_Kalman", json={"Q": 4e-6}).status_code == 200
+    assert c.patch("/filters/EXH_BP_R_MAF", json={"samples": 50}).status_code == 200
+    assert [p.name for p in path.parent.iterdir()] == ["tuning.json"]  # no temp files left
+
+    rt2 = Runtime(db, native_filters())
+    store2 = TuningStore(path)
+    store2.load()
+    assert store2.restore(rt2) == []
+    assert rt2.blocks["EXH_BP_L_Kalman"].Q == 4e-6
+    assert rt2.blocks["EXH_BP_R_MAF"].samples == 50
+
+
+def test_corrupt_tuning_file_is_kept_aside(db, tmp_path):
+    path = tmp_path / "tuning.json"
+    path.write_text("{ half a file")
+    store = TuningStore(path)
+    assert store.load() == {}
+    aside = [p for p in tmp_path.iterdir() if ".corrupt-" in p.name]
+    assert len(aside) == 1 and aside[0].read_text() == "{ half a file"
+
+
+def test_saved_tuning_with_bad_values_is_skipped_not_applied(db, tmp_path):
+    path = tmp_path / "tuning.json"
+    path.write_text(json.dumps({"filters": {"EXH_BP_L_Kalman": {"Q": -1}, "GONE": {"Q": 1e-6},
+                                            "EXH_BP_R_Kalman": {"R": 5e-4}}}))
+    rt = Runtime(db, native_filters())
+    store = TuningStore(path)
+    store.load()
+    skipped = store.restore(rt)
+    assert len(skipped) == 2
+    assert rt.blocks["EXH_BP_L_Kalman"].Q == 1e-6
+    assert rt.blocks["EXH_BP_R_Kalman"].R == 5e-4

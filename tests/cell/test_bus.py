@@ -1,0 +1,97 @@
+"""Bus selection, echo dropping and the one-line errors of cell.bus."""
+
+import subprocess
+
+import can
+import pytest
+
+from cell import bus as cellbus
+from cell.bus import MULTICAST_GROUP, BusSpec, CellBus, open_bus, resolve
+from cell.errors import BusError
+
+
+def test_resolve_auto_prefers_vcan0(monkeypatch):
+    monkeypatch.setattr(cellbus, "have_socketcan", lambda name="vcan0": True)
+    assert resolve("auto", env={}) == BusSpec("socketcan", "vcan0")
+    monkeypatch.setattr(cellbus, "have_socketcan", lambda name="vcan0": False)
+    assert resolve("auto", env={}) == BusSpec("udp_multicast", MULTICAST_GROUP)
+    assert resolve(None, env={}) == BusSpec("udp_multicast", MULTICAST_GROUP)
+
+
+def test_resolve_honours_python_can_environment():
+    env = {"CAN_INTERFACE": "virtual", "CAN_CHANNEL": "bench"}
+    assert resolve(None, env=env) == BusSpec("virtual", "bench")
+    assert resolve("socketcan:can1", env=env) == BusSpec("socketcan", "can1")
+    assert resolve("virtual", env={}) == BusSpec("virtual", "testcell")
+
+
+def test_unknown_bus_names_the_choices():
+    with pytest.raises(BusError, match="unknown bus 'carrier-pigeon'.*udp_multicast"):
+        resolve("carrier-pigeon", env={})
+
+
+def test_missing_socketcan_interface_names_the_fix():
+    with pytest.raises(BusError, match="vcan7 does not exist: run scripts/setup-vcan.sh"):
+        open_bus("socketcan:vcan7")
+
+
+def test_permission_problem_is_one_line(monkeypatch):
+    def refuse(**kwargs):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(can, "Bus", refuse)
+    with pytest.raises(BusError, match="permission denied opening virtual:x.*--bus udp_multicast"):
+        open_bus("virtual:x")
+
+
+class FakeBus:
+    """Stands in for udp_multicast: every send comes back to the sender."""
+
+    def __init__(self):
+        self.queue = []
+
+    def send(self, msg):
+        self.queue.append(msg)
+
+    def recv(self, timeout=None):
+        return self.queue.pop(0) if self.queue else None
+
+    def shutdown(self):
+        pass
+
+
+def test_own_echoes_are_dropped_but_identical_foreign_frames_are_not():
+    fake = FakeBus()
+    b = CellBus(fake, BusSpec("udp_multicast", MULTICAST_GROUP))
+    mine = can.Message(arbitration_id=0x300, data=b"\x01" * 8, is_extended_id=False)
+    b.send(mine)
+    assert b.recv(0) is None and b.echoes_dropped == 1
+    # someone else sends the same bytes later: delivered, since our one echo was consumed
+    fake.queue.append(can.Message(arbitration_id=0x300, data=b"\x01" * 8, is_extended_id=False))
+    assert b.recv(0) is not None
+    other = can.Message(arbitration_id=0x101, data=b"\x02" * 8, is_extended_id=False)
+    fake.queue.append(other)
+    assert b.recv(0).arbitration_id == 0x101
+
+
+def _multicast_on_loopback():
+    try:
+        out = subprocess.run(["ip", "route", "get", MULTICAST_GROUP], capture_output=True, text=True)
+    except FileNotFoundError:
+        return False
+    return " dev lo " in out.stdout
+
+
+@pytest.mark.skipif(not _multicast_on_loopback(),
+                    reason="multicast group not routed over loopback (scripts/setup-multicast.sh)")
+def test_udp_multicast_between_two_buses_without_echo():
+    a, b = open_bus("udp_multicast"), open_bus("udp_multicast")
+    try:
+        msg = can.Message(arbitration_id=0x200, data=b"\x10\x27\x10\x27", is_extended_id=False)
+        a.send(msg)
+        got = b.recv(2.0)
+        assert got is not None and bytes(got.data) == bytes(msg.data)
+        assert a.recv(0.3) is None, "the sender received its own echo"
+    finally:
+        a.shutdown()
+        b.shutdown()

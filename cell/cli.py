@@ -84,6 +84,10 @@ def _stop_process(proc: subprocess.Popen | None) -> None:
         proc.wait()
 
 
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    raise SystemExit(0)
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -96,6 +100,9 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     spec = resolve(args.bus)
     _check_port_free(args.host, args.port)
+    # uvicorn re-raises SIGTERM after its own graceful shutdown; turn it into SystemExit so
+    # the finally below still stops the simulator and closes the bus
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
     runtime = build_runtime(args)
     store = TuningStore(args.state)
     store.load()

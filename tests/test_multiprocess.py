@@ -104,13 +104,18 @@ class Up:
     def history(self, name: str, seconds: float) -> list[dict]:
         return self.get(f"/channels/{name}/history?seconds={seconds}")[1]["points"]
 
-    def stop(self) -> int:
+    def stop(self, watch: list[int] = ()) -> int:
+        """SIGTERM the cell; ``self.survivors`` lists the ``watch`` pids still alive after it exited."""
         self.proc.send_signal(signal.SIGTERM)
         try:
             rc = self.proc.wait(20)
+            time.sleep(0.5)
+            self.survivors = [p for p in watch if pid_alive(p)]
         finally:
-            if self.proc.poll() is None:
+            try:  # whatever happened, leave no simulator behind for the next test
                 os.killpg(self.proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
             self.log.close()
         return rc
 
@@ -150,7 +155,9 @@ def recorded(tmp_path_factory):
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         # rated: idle 20 s, ramp 60 s, then steady; at 8x that is ~10 s of wall time
         up.wait(lambda: up.channel("ENGINE_SPEED")["value"] > 1790, 40, "rated speed")
-        time.sleep(6.0)  # let gas volume and filters settle at rated (48 s of plant time)
+        # bus time is receive time: the 10 s history must lie wholly after the ramp, and the
+        # filters need a few seconds of bus time to settle
+        time.sleep(12.0)
         found["steady_kalman"] = up.history("EXH_BP_R_Kalman", 10)
         found["steady_true"] = up.history("EXH_BP_R_TRUE", 10)
         found["steady_raw"] = up.history("EXH_BP_R", 10)
@@ -166,9 +173,8 @@ def recorded(tmp_path_factory):
         found["after_patch_kalman"] = up.history("EXH_BP_R_Kalman", 2)
         found["after_patch_raw"] = up.history("EXH_BP_R", 2)
     finally:
-        found["rc"] = up.stop()
-    time.sleep(0.5)
-    found["sim_alive_after_stop"] = [p for p in found.get("sim_pids", []) if pid_alive(p)]
+        found["rc"] = up.stop(watch=found.get("sim_pids", []))
+    found["sim_alive_after_stop"] = up.survivors
     return found
 
 

@@ -145,18 +145,28 @@ def cmd_up(args: argparse.Namespace) -> int:
 # -- replay ------------------------------------------------------------------------------
 def cmd_replay(args: argparse.Namespace) -> int:
     from .replay import replay
+    from .tables import WRITERS, plot_channels
 
+    if Path(args.out).suffix.lower() not in WRITERS:
+        raise ConfigError(f"--out {args.out}: unknown table format; use one of {', '.join(WRITERS)}")
     runtime = build_runtime(args)
     channels = [c.strip() for c in args.channels.split(",") if c.strip()] if args.channels else None
     result = replay(runtime, args.log, args.out, channels=channels,
                     progress=False if args.quiet else None)
     print(f"{args.log}: {result.frames} frames, {len(result.rows)} ticks -> {args.out}",
           file=sys.stderr)
+    if args.plot:
+        wanted = channels or [c for c in PLOT_DEFAULT if c in result.columns]
+        plot_channels(args.plot, result.columns, result.rows, wanted, title=str(args.log))
+        print(f"plot -> {args.plot}", file=sys.stderr)
     if result.error is not None:
         print(f"testcell replay: stopped at {result.error}; rows up to it were written to "
               f"{args.out}", file=sys.stderr)
         return 1
     return 0
+
+
+PLOT_DEFAULT = ["EXH_BP_R", "EXH_BP_R_TRUE", "EXH_BP_R_MAF", "EXH_BP_R_Kalman"]
 
 
 def cmd_sim(args: argparse.Namespace) -> int:
@@ -205,9 +215,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim_module.add_arguments(sim)
     sim.set_defaults(func=cmd_sim)
 
-    rp = sub.add_parser("replay", help="run the runtime offline over a CAN log, write CSV")
+    rp = sub.add_parser("replay", help="run the runtime offline over a CAN log, write a table")
     rp.add_argument("log", help="CAN log: candump -L .log, .asc, .blf, .trc or python-can .csv")
-    rp.add_argument("--out", required=True, help="output CSV: time, then one column per channel")
+    rp.add_argument("--out", required=True,
+                    help="output table, by suffix .csv, .parquet or .mf4 (MDF4): time, then one "
+                         "column per channel")
+    rp.add_argument("--plot", default=None, metavar="PNG", help="also plot the channels to a PNG")
     rp.add_argument("--channels", default=None, help="comma-separated channels to write")
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     _common_runtime_options(rp)

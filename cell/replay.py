@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import csv
-import math
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -15,6 +13,7 @@ from tqdm import tqdm
 
 from .errors import ConfigError, LogFormatError
 from .runtime import Runtime
+from .tables import write_table
 
 #: python-can readers by suffix; text formats are read line by line so errors carry a line.
 TEXT_READERS = {
@@ -100,11 +99,12 @@ def replay(
     channels: list[str] | None = None,
     progress: bool | None = None,
 ) -> ReplayResult:
-    """Run ``runtime`` over ``log`` and write one row per MED tick to ``out`` (CSV).
+    """Run ``runtime`` over ``log`` and write one row per MED tick to ``out``.
 
     The first column is ``time`` (bus time, s); then one column per channel. A stale or
-    invalid value is written as an empty cell. If the log has a malformed line, the rows
-    up to it are still written, and the error is returned in the result.
+    invalid value is written empty (NaN). ``out``'s suffix picks CSV, Parquet or MDF4. If the
+    log has a malformed line, the rows up to it are still written, the file says where the
+    replay stopped, and the error is returned in the result.
     """
     result = ReplayResult()
     snapshots: list[tuple[float, dict[str, float | None]]] = []
@@ -146,21 +146,7 @@ def replay(
     result.columns = ["time", *names]
     result.rows = [[t, *(row.get(n) for n in names)] for t, row in snapshots]
     if out is not None:
-        write_csv(out, result.columns, result.rows)
+        units = {"time": "s", **{n: runtime.channels[n].unit for n in names}}
+        note = f"stopped at {result.error}" if result.error else None
+        write_table(out, result.columns, result.rows, units, note)
     return result
-
-
-def _fmt(v: Any) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return ""
-    return repr(float(v))
-
-
-def write_csv(path: str | Path, columns: list[str], rows: list[list[Any]]) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(columns)
-        for row in rows:
-            w.writerow([f"{row[0]:.6f}", *(_fmt(v) for v in row[1:])])

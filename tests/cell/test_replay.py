@@ -64,7 +64,7 @@ def test_malformed_line_stops_with_its_number_and_keeps_rows(db, log_file, tmp_p
     assert main(["replay", str(bad), "--out", str(out), "--quiet"]) == 1
     err = capsys.readouterr().err
     assert f"{bad}:1201" in err
-    rows = list(csv.DictReader(open(out)))
+    rows = [r for r in csv.DictReader(open(out)) if not r["time"].startswith("#")]
     assert 55 <= len(rows) <= 61  # 600 frame pairs ~ 6 s of ticks were kept
     result = replay(Runtime(db, native_filters()), bad, None, progress=False)
     assert result.error.line == 1201
@@ -77,3 +77,43 @@ def test_missing_or_unknown_log(tmp_path, db):
     weird.write_text("hello")
     with pytest.raises(ConfigError, match="unknown log format"):
         replay(Runtime(db), weird, None)
+
+
+@pytest.mark.parametrize("suffix", [".parquet", ".mf4"])
+def test_replay_writes_parquet_and_mdf4(log_file, tmp_path, suffix):
+    csv_out, out = tmp_path / "ref.csv", tmp_path / f"out{suffix}"
+    assert main(["replay", str(log_file), "--out", str(csv_out), "--quiet"]) == 0
+    assert main(["replay", str(log_file), "--out", str(out), "--quiet"]) == 0
+    ref = list(csv.DictReader(open(csv_out)))
+    kal = np.array([float(r["EXH_BP_R_Kalman"]) for r in ref])
+    if suffix == ".parquet":
+        import pyarrow.parquet as pq
+
+        table = pq.read_table(out)
+        np.testing.assert_allclose(table.column("EXH_BP_R_Kalman").to_numpy(), kal, rtol=1e-12)
+        assert table.schema.metadata[b"unit:EXH_BP_R_Kalman"] == b"mmH2O"
+    else:
+        from asammdf import MDF
+
+        sig = MDF(out).get("EXH_BP_R_Kalman")
+        np.testing.assert_allclose(sig.samples, kal, rtol=1e-12)
+        np.testing.assert_allclose(sig.timestamps, [float(r["time"]) for r in ref], atol=1e-6)
+        assert sig.unit == "mmH2O"
+
+
+def test_replay_plot_and_bad_output_format(log_file, tmp_path):
+    png = tmp_path / "plot.png"
+    assert main(["replay", str(log_file), "--out", str(tmp_path / "o.csv"), "--plot", str(png),
+                 "--quiet"]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main(["replay", str(log_file), "--out", str(tmp_path / "o.xlsx"), "--quiet"]) == 2
+
+
+def test_stopped_replay_says_where_in_the_output(log_file, tmp_path):
+    lines = log_file.read_text().splitlines()
+    lines.insert(10, "this is not a frame")
+    bad = tmp_path / "bad.log"
+    bad.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "o.csv"
+    assert main(["replay", str(bad), "--out", str(out), "--quiet"]) == 1
+    assert out.read_text().splitlines()[-1].startswith(f"# stopped at {bad}:11:")

@@ -117,3 +117,18 @@ def test_stopped_replay_says_where_in_the_output(log_file, tmp_path):
     out = tmp_path / "o.csv"
     assert main(["replay", str(bad), "--out", str(out), "--quiet"]) == 1
     assert out.read_text().splitlines()[-1].startswith(f"# stopped at {bad}:11:")
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf", ".trc"])
+def test_replay_reads_the_other_python_can_formats(log_file, tmp_path, suffix):
+    other = tmp_path / f"cell{suffix}"
+    with can.Logger(str(other)) as w:
+        for msg in can.LogReader(str(log_file)):
+            w.on_message_received(msg)
+    ref, out = tmp_path / "ref.csv", tmp_path / "out.csv"
+    assert main(["replay", str(log_file), "--out", str(ref), "--quiet"]) == 0
+    assert main(["replay", str(other), "--out", str(out), "--quiet"]) == 0
+    a = [float(r["EXH_BP_R_Kalman"]) for r in csv.DictReader(open(ref))]
+    b = [float(r["EXH_BP_R_Kalman"]) for r in csv.DictReader(open(out))]
+    assert len(a) == len(b)
+    np.testing.assert_allclose(a, b, atol=1e-9)

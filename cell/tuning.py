@@ -68,15 +68,18 @@ class TuningStore:
         self.data = data
         return self.data
 
-    def restore(self, runtime: Runtime, section: str = "filters") -> list[str]:
+    def restore(self, runtime: Runtime, sections: tuple[str, ...] = ("filters", "controllers",
+                                                                     "observers")) -> list[str]:
         """Apply saved parameters to the runtime's blocks; returns what was skipped and why."""
         skipped = []
-        for name, params in list(self.data.get(section, {}).items()):
-            try:
-                runtime.set_params(name, params)
-            except (UnknownBlockError, ParamError) as exc:
-                skipped.append(f"{name}: {exc}")
-                log.warning("tuning file %s: not restoring %s: %s", self.path, name, exc)
+        for section in sections:
+            for name, params in list(self.data.get(section, {}).items()):
+                try:
+                    runtime.set_params(name, params, family=section[:-1])
+                except (UnknownBlockError, ParamError) as exc:
+                    skipped.append(f"{section}/{name}: {exc}")
+                    log.warning("tuning file %s: not restoring %s/%s: %s", self.path, section,
+                                name, exc)
         return skipped
 
     def record(self, section: str, name: str, params: dict[str, Any]) -> None:

@@ -1,0 +1,48 @@
+"""How fast the runtime eats cell traffic, against the CAN bus limit and real time.
+
+Run: ``.venv/bin/python benchmarks/bench_runtime.py [SECONDS]``
+
+The reference is the most frames a 500 kbit/s classic CAN bus can carry: an 8-byte
+standard frame is at most 135 bits with worst-case stuffing (plus 3 bits interframe
+space), so 500 000 / 138 ≈ 3623 frames/s. The cell's own traffic is ~360 frames/s.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from cell.dbc import load
+from cell.filters import native_filters
+from cell.plant import simulate
+from cell.runtime import Runtime
+
+BUS_LIMIT_FPS = 500_000 / 138
+
+
+def main(seconds: float = 120.0) -> None:
+    db = load()
+    frames = list(simulate(db, "transient", seed=0, duration=seconds))
+    rt = Runtime(db, native_filters())
+    t0 = time.perf_counter()
+    for msg in frames:
+        rt.ingest(msg)
+    rt.advance(frames[-1].timestamp)
+    elapsed = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    for msg in frames:
+        db.decode(msg)
+    decode_only = time.perf_counter() - t1
+
+    fps = len(frames) / elapsed
+    print(f"{len(frames)} frames ({seconds:.0f} s of cell traffic) through the runtime with "
+          f"{len(rt.blocks)} native filters in {elapsed:.2f} s")
+    print(f"  runtime:            {fps:10.0f} frames/s = {fps / BUS_LIMIT_FPS:6.2f} x the "
+          f"500 kbit/s bus limit ({BUS_LIMIT_FPS:.0f} frames/s), {seconds / elapsed:6.1f} x real time")
+    print(f"  cantools decode only: {len(frames) / decode_only:8.0f} frames/s "
+          f"(runtime = {decode_only / elapsed:.0%} decode)")
+
+
+if __name__ == "__main__":
+    main(float(sys.argv[1]) if len(sys.argv) > 1 else 120.0)

@@ -6,7 +6,7 @@ from cell import __version__
 from cell.context import Cell
 
 from . import errors
-from .routes import channels, filters, health
+from .routes import channels, filters, health, page
 
 
 def create_app(cell: Cell) -> FastAPI:
@@ -17,6 +17,6 @@ def create_app(cell: Cell) -> FastAPI:
     )
     app.state.cell = cell
     errors.install(app)
-    for router in (health.router, channels.router, filters.router):
+    for router in (health.router, channels.router, filters.router, page.router):
         app.include_router(router)
     return app

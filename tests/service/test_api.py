@@ -175,3 +175,13 @@ def test_saved_tuning_with_bad_values_is_skipped_not_applied(db, tmp_path):
     assert len(skipped) == 2
     assert rt.blocks["EXH_BP_L_Kalman"].Q == 1e-6
     assert rt.blocks["EXH_BP_R_Kalman"].R == 5e-4
+
+
+def test_page_and_openapi(client):
+    r = client.get("/")
+    assert r.status_code == 200 and "text/html" in r.headers["content-type"]
+    assert "/channels" in r.text
+    paths = client.get("/openapi.json").json()["paths"]
+    for p in ("/health", "/channels", "/channels/{name}", "/channels/{name}/history", "/filters",
+              "/filters/{name}"):
+        assert p in paths

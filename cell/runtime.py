@@ -103,6 +103,7 @@ class Runtime:
         self.last_tick_time: float | None = None
         self._frame_times: collections.deque[float] = collections.deque(maxlen=20_000)
         self._next_index: dict[str, int] | None = None
+        self._next_due: float | None = None
         # an input goes stale by the third MED tick after its frames stop
         self._stale_floor = 1.5 / self.rates.MED
         for block in blocks:
@@ -217,6 +218,9 @@ class Runtime:
             self._run_ticks(t, inclusive=True)
 
     def _run_ticks(self, until: float, inclusive: bool) -> None:
+        nxt = self._next_due
+        if nxt is not None and (nxt > until + _EPS or (not inclusive and nxt >= until - _EPS)):
+            return  # the common case: a frame between two ticks
         if self._next_index is None:
             # first time seen: the first tick of each task is the first grid point at or after it
             self._next_index = {
@@ -229,7 +233,7 @@ class Runtime:
                 if t < until - _EPS or (inclusive and t <= until + _EPS):
                     due.append((t, r))
             if not due:
-                return
+                break
             t = min(d[0] for d in due)
             ticking = frozenset(r for (tt, r) in due if abs(tt - t) <= _EPS)
             for r in ticking:
@@ -238,6 +242,7 @@ class Runtime:
             self.last_tick_time = t
             if "MED" in ticking:
                 self._after_med_tick(t)
+        self._next_due = min(self._next_index[r] / getattr(self.rates, r) for r in RATE_NAMES)
 
     def _tick(self, ticking: frozenset[str], t: float) -> None:
         updated: set[str] = set()

@@ -66,6 +66,8 @@ class Block:
     kind: ClassVar[str] = "block"
     family: ClassVar[str] = "block"
     PARAMS: ClassVar[dict[str, Param]] = {}
+    #: whether the block's DBC outputs go onto the bus (a disabled controller keeps off it)
+    on_bus: bool = True
 
     def __init__(
         self, name: str, inputs: list[str], outputs: list[str], rate: str | tuple[str, ...] = "MED"

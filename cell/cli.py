@@ -45,9 +45,13 @@ def build_runtime(args: argparse.Namespace):
     from .filters import native_filters
     from .runtime import Rates, Runtime
 
+    from .adaptive import adaptive_filters
+    from .controller import controllers
+
     db = load(getattr(args, "dbc", None))
     rt = Runtime(db, rates=Rates.parse(getattr(args, "cycle", None)))
-    for block in native_filters():
+    # controllers start disabled: they keep off the bus until enabled over HTTP
+    for block in [*native_filters(), *adaptive_filters(), *controllers("kalman")]:
         rt.add_block(block)
     return rt
 
@@ -169,6 +173,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
 PLOT_DEFAULT = ["EXH_BP_R", "EXH_BP_R_TRUE", "EXH_BP_R_MAF", "EXH_BP_R_Kalman"]
 
 
+def cmd_experiment(args: argparse.Namespace) -> int:
+    from . import experiment
+
+    return experiment.main(args)
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from . import sim
 
@@ -225,6 +235,11 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     _common_runtime_options(rp)
     rp.set_defaults(func=cmd_replay)
+    ex = sub.add_parser("experiment", help="run an experiment: closed-loop (seed 004, Figure 10)")
+    from . import experiment as experiment_module
+
+    experiment_module.add_arguments(ex)
+    ex.set_defaults(func=cmd_experiment)
     return parser
 
 

@@ -290,6 +290,8 @@ class Runtime:
             names = [s.name for s in message.signals]
             if not updated.intersection(names):
                 continue
+            if not all(self.blocks[self.producer[n]].on_bus for n in names):
+                continue  # e.g. a disabled controller: its demand stays off the bus
             chans = [self.channels[n] for n in names]
             if any(c.status != OK or c.value is None for c in chans):
                 continue  # a stale or invalid output is not put on the bus

@@ -6,7 +6,7 @@ from cell import __version__
 from cell.context import Cell
 
 from . import errors
-from .routes import channels, filters, health, page
+from .routes import channels, controllers, filters, health, page
 
 
 def create_app(cell: Cell) -> FastAPI:
@@ -17,6 +17,7 @@ def create_app(cell: Cell) -> FastAPI:
     )
     app.state.cell = cell
     errors.install(app)
-    for router in (health.router, channels.router, filters.router, page.router):
+    for router in (health.router, channels.router, filters.router, controllers.router,
+                   page.router):
         app.include_router(router)
     return app

@@ -185,3 +185,40 @@ def test_page_and_openapi(client):
     for p in ("/health", "/channels", "/channels/{name}", "/channels/{name}/history", "/filters",
               "/filters/{name}"):
         assert p in paths
+
+
+def test_controllers_are_tunable_and_keep_off_the_bus_until_enabled(db, tmp_path):
+    from cell.controller import controllers
+
+    rt = Runtime(db, [*native_filters(), *controllers("kalman")])
+    store = TuningStore(tmp_path / "t.json")
+    c = TestClient(create_app(Cell(runtime=rt, tuning=store)))
+
+    def run(t0, t1):
+        t = t0
+        while t < t1 - 1e-9:
+            rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 900.0, "EXH_BP_R": 900.0}, t))
+            rt.ingest(db.encode("VALVE_POS", {"VALVE_POS_L": 100.0, "VALVE_POS_R": 100.0}, t))
+            t = round(t + 0.01, 6)
+        rt.advance(t1 - 0.01)
+        return [f for f in rt.take_outbox() if f.arbitration_id == db.message("VALVE_DEMAND").frame_id]
+
+    names = [b["name"] for b in c.get("/controllers").json()]
+    assert names == ["PI_L", "PI_R"]
+    assert run(0.0, 3.0) == []  # disabled: no demand on the bus
+    for name in names:
+        r = c.patch(f"/controllers/{name}", json={"enable": True})
+        assert r.status_code == 200, r.text
+    demands = run(3.0, 6.0)
+    assert demands, "enabled controllers put no VALVE_DEMAND on the bus"
+    _, last = db.decode(demands[-1])
+    assert last["VALVE_DEMAND_R"] > 100.0 - 5.0 * 3.0 - 0.01  # rate-limited at 5 %/s...
+    assert last["VALVE_DEMAND_R"] <= 100.0  # ...and opening further is impossible (900 > 680)
+
+    for body, field in [('{"kp": NaN}', "kp"), ('{"feedback": ""}', "feedback"),
+                        ('{"enable": "yes"}', "enable"), ('{"out_min": 90, "out_max": 10}', "out_")]:
+        before = c.get("/controllers/PI_R").json()["params"]
+        r = c.patch("/controllers/PI_R", content=body, headers={"content-type": "application/json"})
+        assert r.status_code == 422 and field in json.dumps(r.json()), (body, r.text)
+        assert c.get("/controllers/PI_R").json()["params"] == before
+    assert c.patch("/controllers/PI_X", json={"enable": True}).status_code == 404

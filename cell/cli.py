@@ -235,6 +235,16 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     _common_runtime_options(rp)
     rp.set_defaults(func=cmd_replay)
+    from . import autotune as tune_module
+    from . import sweep as sweep_module
+
+    sp = sub.add_parser("sweep", help="Kalman Q/R sweep over a CAN log (seed 004, Tables 1-2)")
+    sweep_module.add_arguments(sp)
+    sp.set_defaults(func=sweep_module.main)
+    tp = sub.add_parser("tune", help="estimate Kalman Q and R from a CAN log, no truth needed")
+    tune_module.add_arguments(tp)
+    tp.set_defaults(func=tune_module.main)
+
     ex = sub.add_parser("experiment", help="run an experiment: closed-loop (seed 004, Figure 10)")
     from . import experiment as experiment_module
 

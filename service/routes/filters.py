@@ -1,5 +1,53 @@
-"""``/filters``: the moving-average and Kalman filters (``{"Q": .., "R": ..}``, ``{"samples": ..}``)."""
+"""``/filters``: the moving-average, Kalman and adaptive filters.
 
+``PATCH`` takes ``{"Q": .., "R": ..}`` for a Kalman filter or ``{"samples": ..}`` for a moving
+average; ``POST /filters/{name}/autotune`` estimates a Kalman filter's Q and R from its recent
+input alone and applies them only when asked.
+"""
+
+from typing import Annotated, Any, Literal
+
+from fastapi import HTTPException
+from pydantic import BaseModel, ConfigDict, Field, StrictBool
+
+from cell.autotune import autotune
+from cell.errors import ConfigError
+
+from ..deps import CellDep
 from .blocks import block_router
 
 router = block_router("filter", "/filters", [{"Q": 4e-6, "R": 1e-4}, {"samples": 30}])
+
+
+class AutotuneIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    minutes: Annotated[float, Field(gt=0, le=24 * 60, allow_inf_nan=False, strict=True,
+                                    description="how much recent input to use")] = 5.0
+    method: Literal["ml", "als"] = "ml"
+    apply: StrictBool = False
+
+
+@router.post("/{name}/autotune", name="autotune filter")
+def autotune_filter(name: str, cell: CellDep, body: AutotuneIn | None = None) -> dict[str, Any]:
+    """Estimate Q and R from the last ``minutes`` of the filter's input (no truth needed):
+    maximum likelihood on the innovations, with a confidence interval. Applied (and saved)
+    only with ``"apply": true``."""
+    body = body or AutotuneIn()
+    rt = cell.runtime
+    with rt.lock:
+        block = cell.find("filter", name)
+        if block.kind != "kalman":
+            raise HTTPException(422, detail=[{"loc": ["path", "name"], "type": "value_error",
+                                              "msg": f"{name} is a {block.kind} filter; only "
+                                                     "Kalman filters have Q and R"}])
+        y = [v for _, v, _ in rt.history(block.inputs[0], body.minutes * 60.0)]
+        rate = rt.rates.period(block.rate) ** -1
+    try:
+        result = autotune(y, rate, body.method)
+    except ConfigError as exc:
+        raise HTTPException(422, detail=[{"loc": ["body", "minutes"], "type": "value_error",
+                                          "msg": str(exc)}]) from None
+    applied = None
+    if body.apply:
+        applied = cell.tune("filter", name, {"Q": result.Q, "R": result.R})
+    return {**result.to_dict(), "filter": name, "samples_used": len(y), "applied": applied}

@@ -222,3 +222,37 @@ def test_controllers_are_tunable_and_keep_off_the_bus_until_enabled(db, tmp_path
         assert r.status_code == 422 and field in json.dumps(r.json()), (body, r.text)
         assert c.get("/controllers/PI_R").json()["params"] == before
     assert c.patch("/controllers/PI_X", json={"enable": True}).status_code == 404
+
+
+def test_autotune_estimates_from_history_and_applies_only_on_request(db, tmp_path):
+    import numpy as np
+
+    rt = Runtime(db, native_filters(), history_s=600)
+    rng = np.random.default_rng(5)
+    level = 600.0
+    for i in range(30000):  # 300 s at 100 Hz: a random walk (Q = 4 per tick) plus white noise (R = 2500)
+        if i % 10 == 0:
+            level += rng.normal(0, 2.0)
+        y = level + rng.normal(0, 50.0)
+        rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": y, "EXH_BP_R": y}, i * 0.01))
+    rt.advance(299.99)
+    store = TuningStore(tmp_path / "t.json")
+    c = TestClient(create_app(Cell(runtime=rt, tuning=store)))
+
+    r = c.post("/filters/EXH_BP_R_Kalman/autotune", json={"minutes": 5})
+    assert r.status_code == 200, r.text
+    est = r.json()
+    assert est["applied"] is None and rt.blocks["EXH_BP_R_Kalman"].Q == 1e-6
+    assert est["R"] == pytest.approx(2500, rel=0.15)
+    assert est["Q"] == pytest.approx(4.0, rel=0.6)
+    assert est["samples_used"] == 3000
+
+    r = c.post("/filters/EXH_BP_R_Kalman/autotune", json={"minutes": 5, "apply": True})
+    assert r.status_code == 200
+    assert rt.blocks["EXH_BP_R_Kalman"].Q == pytest.approx(r.json()["Q"])
+    assert json.loads(store.path.read_text())["filters"]["EXH_BP_R_Kalman"]["R"] == pytest.approx(r.json()["R"])
+
+    for body in ({"minutes": 0}, {"minutes": "5"}, {"apply": "yes"}, {"method": "guess"}, {"hours": 1}):
+        assert c.post("/filters/EXH_BP_L_Kalman/autotune", json=body).status_code == 422, body
+    assert c.post("/filters/EXH_BP_L_MAF/autotune", json={}).status_code == 422
+    assert c.post("/filters/NOPE/autotune", json={}).status_code == 404

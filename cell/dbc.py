@@ -89,12 +89,9 @@ class CellDatabase:
                 self._message_of[s.name] = m
 
     # -- decoding -----------------------------------------------------------------
-    def decode(self, msg: can.Message) -> tuple[Message, dict[str, float]]:
-        """Decode one frame to ``{signal: physical value}``.
-
-        Raises :class:`FrameDecodeError` with kind ``unknown_id`` (not in the DBC),
-        ``bad_length`` (data length differs from the DBC's) or ``decode_error``.
-        """
+    def check(self, msg: can.Message) -> Message:
+        """The DBC message of a frame; raises :class:`FrameDecodeError` (``unknown_id`` or
+        ``bad_length``) when the frame is not one the DBC describes."""
         message = self._by_id.get((msg.arbitration_id, bool(msg.is_extended_id)))
         if message is None:
             raise FrameDecodeError("unknown_id", f"frame id 0x{msg.arbitration_id:X} is not in the DBC")
@@ -104,11 +101,24 @@ class CellDatabase:
                 f"{message.name} (0x{msg.arbitration_id:X}) has {len(msg.data)} data bytes, "
                 f"the DBC says {message.length}",
             )
+        return message
+
+    def decode_payload(self, message: Message, data: bytes) -> dict[str, float]:
+        """Physical values of a checked frame's data; ``decode_error`` if cantools refuses it."""
         try:
-            values = message.decode(bytes(msg.data), decode_choices=False, scaling=True)
+            values = message.decode(data, decode_choices=False, scaling=True)
         except Exception as exc:
             raise FrameDecodeError("decode_error", f"{message.name}: {exc}") from exc
-        return message, {k: float(v) for k, v in values.items()}
+        return {k: float(v) for k, v in values.items()}
+
+    def decode(self, msg: can.Message) -> tuple[Message, dict[str, float]]:
+        """Decode one frame to ``{signal: physical value}``.
+
+        Raises :class:`FrameDecodeError` with kind ``unknown_id`` (not in the DBC),
+        ``bad_length`` (data length differs from the DBC's) or ``decode_error``.
+        """
+        message = self.check(msg)
+        return message, self.decode_payload(message, bytes(msg.data))
 
     # -- encoding -----------------------------------------------------------------
     def message_for(self, signal: str) -> Message:

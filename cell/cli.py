@@ -39,21 +39,31 @@ def _port(text: str) -> int:
     return v
 
 
-def build_runtime(args: argparse.Namespace):
-    """The runtime ``up`` and ``replay`` share: the DBC, the rates and the native filters."""
+def build_runtime(args: argparse.Namespace, store=None):
+    """The runtime ``up`` and ``replay`` share: the DBC, the rates, the native blocks and the
+    scripts. With ``--script`` only the given scripts run (plus the native blocks with
+    ``--native``); otherwise the native blocks and the shipped (and saved) scripts."""
+    from .adaptive import adaptive_filters
+    from .controller import controllers
     from .dbc import load
     from .filters import native_filters
     from .runtime import Rates, Runtime
-
-    from .adaptive import adaptive_filters
-    from .controller import controllers
+    from .scripting import ScriptManager
 
     db = load(getattr(args, "dbc", None))
     rt = Runtime(db, rates=Rates.parse(getattr(args, "cycle", None)))
-    # controllers start disabled: they keep off the bus until enabled over HTTP
-    for block in [*native_filters(), *adaptive_filters(), *controllers("kalman")]:
-        rt.add_block(block)
-    return rt
+    given = getattr(args, "script", None)
+    if not given or getattr(args, "native", False):
+        # controllers start disabled: they keep off the bus until enabled over HTTP
+        for block in [*native_filters(), *adaptive_filters(), *controllers("kalman")]:
+            rt.add_block(block)
+    scripts = ScriptManager(rt, store)
+    if given:
+        scripts.load_files([Path(p) for p in given])
+    else:
+        for problem in scripts.load_defaults():
+            log.warning("%s", problem)
+    return rt, scripts
 
 
 # -- up ----------------------------------------------------------------------------------
@@ -107,9 +117,9 @@ def cmd_up(args: argparse.Namespace) -> int:
     # uvicorn re-raises SIGTERM after its own graceful shutdown; turn it into SystemExit so
     # the finally below still stops the simulator and closes the bus
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
-    runtime = build_runtime(args)
     store = TuningStore(args.state)
     store.load()
+    runtime, scripts = build_runtime(args, store)
     store.restore(runtime)
     bus = open_bus(spec)
     sim_proc = None
@@ -131,7 +141,8 @@ def cmd_up(args: argparse.Namespace) -> int:
             else:
                 sim_proc = _start_sim_process(args, str(spec))
         live = LiveCell(runtime, bus).start()
-        cell = Cell(runtime=runtime, bus=str(spec), tuning=store, live=live)
+        cell = Cell(runtime=runtime, bus=str(spec), tuning=store, live=live,
+                    extra={"scripts": scripts})
         log.info("testcell %s on %s; API on http://%s:%d (tuning file %s)",
                  __version__, spec, args.host, args.port, store.path)
         uvicorn.run(create_app(cell), host=args.host, port=args.port,
@@ -153,7 +164,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     if Path(args.out).suffix.lower() not in WRITERS:
         raise ConfigError(f"--out {args.out}: unknown table format; use one of {', '.join(WRITERS)}")
-    runtime = build_runtime(args)
+    runtime, _ = build_runtime(args)
     channels = [c.strip() for c in args.channels.split(",") if c.strip()] if args.channels else None
     result = replay(runtime, args.log, args.out, channels=channels,
                     progress=False if args.quiet else None)
@@ -232,6 +243,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "column per channel")
     rp.add_argument("--plot", default=None, metavar="PNG", help="also plot the channels to a PNG")
     rp.add_argument("--channels", default=None, help="comma-separated channels to write")
+    rp.add_argument("--script", action="append", metavar="FILE",
+                    help="run exactly this script (.fdv, .labels with its .ravg, .ravg); repeat "
+                         "for more. Without --script, replay runs what testcell up runs")
+    rp.add_argument("--native", action="store_true",
+                    help="with --script: also run the native filters and controllers")
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     _common_runtime_options(rp)
     rp.set_defaults(func=cmd_replay)
@@ -263,7 +279,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"testcell {args.command}: {exc}", file=sys.stderr)
         return 2
     except TestcellError as exc:
-        print(f"testcell {args.command}: {exc}", file=sys.stderr)
+        report = exc.report() if hasattr(exc, "report") else str(exc)  # every script error
+        print("\n".join(f"testcell {args.command}: {line}" for line in report.splitlines()),
+              file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

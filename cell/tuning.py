@@ -85,6 +85,9 @@ class TuningStore:
     def record(self, section: str, name: str, params: dict[str, Any]) -> None:
         """Remember a block's accepted parameters and save the whole file atomically."""
         self.data.setdefault(section, {})[name] = params
+        self.save()
+
+    def save(self) -> None:
         try:
             write_atomic(self.path, self.data)
         except OSError as exc:

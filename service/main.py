@@ -6,7 +6,7 @@ from cell import __version__
 from cell.context import Cell
 
 from . import errors
-from .routes import channels, controllers, filters, health, page
+from .routes import channels, controllers, filters, health, page, scripts
 
 
 def create_app(cell: Cell) -> FastAPI:
@@ -18,6 +18,6 @@ def create_app(cell: Cell) -> FastAPI:
     app.state.cell = cell
     errors.install(app)
     for router in (health.router, channels.router, filters.router, controllers.router,
-                   page.router):
+                   scripts.router, page.router):
         app.include_router(router)
     return app

@@ -132,3 +132,30 @@ def test_replay_reads_the_other_python_can_formats(log_file, tmp_path, suffix):
     b = [float(r["EXH_BP_R_Kalman"]) for r in csv.DictReader(open(out))]
     assert len(a) == len(b)
     np.testing.assert_allclose(a, b, atol=1e-9)
+
+
+def test_replay_with_scripts_runs_exactly_those(log_file, tmp_path):
+    from cell.formula import shipped_scripts
+
+    fdv = tmp_path / "kalman.fdv"
+    fdv.write_text(dict((n, t) for n, t, _ in shipped_scripts())["kalman.fdv"])
+    out = tmp_path / "s.csv"
+    assert main(["replay", str(log_file), "--script", str(fdv), "--out", str(out), "--quiet"]) == 0
+    cols = open(out).readline().strip().split(",")
+    assert "EXH_BP_R_Kalman_FDV" in cols and "EXH_BP_R_Kalman" not in cols and "EXH_BP_R_MAF_CYF" not in cols
+    assert main(["replay", str(log_file), "--script", str(fdv), "--native", "--out", str(out), "--quiet"]) == 0
+    cols = open(out).readline().strip().split(",")
+    assert "EXH_BP_R_Kalman_FDV" in cols and "EXH_BP_R_Kalman" in cols
+    # without --script: what testcell up runs, native and shipped side by side
+    assert main(["replay", str(log_file), "--out", str(out), "--quiet"]) == 0
+    cols = open(out).readline().strip().split(",")
+    assert {"EXH_BP_R_Kalman", "EXH_BP_R_Kalman_FDV", "EXH_BP_R_Kalman_CYF", "EXH_BP_R_MAF_CYF"} <= set(cols)
+
+
+def test_replay_with_a_broken_script_names_its_position(log_file, tmp_path, capsys):
+    bad = tmp_path / "bad.fdv"
+    bad.write_text("[formulas]\npublic Y\nY = pow(EXH_BP_R, 2\n")
+    assert main(["replay", str(log_file), "--script", str(bad), "--out", str(tmp_path / "o.csv")]) == 1
+    assert "bad.fdv:3:" in capsys.readouterr().err
+    assert main(["replay", str(log_file), "--script", str(tmp_path / "gone.fdv"),
+                 "--out", str(tmp_path / "o.csv")]) == 2

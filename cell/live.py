@@ -1,8 +1,8 @@
 """The live cell: a thread that feeds bus frames to the runtime and puts its outputs on the bus.
 
-Bus time comes from frame timestamps. When the bus falls silent, bus time is carried on
-from the last frame with a monotonic clock (less a short grace for frames in flight), so
-ticks keep coming and inputs can go stale.
+Bus time comes from frame timestamps. When the bus falls silent (a receive times out), bus
+time is carried on from the last frame with a monotonic clock (less a short grace for
+frames in flight), so ticks keep coming and inputs can go stale.
 """
 
 from __future__ import annotations
@@ -73,9 +73,12 @@ class LiveCell:
                 self.runtime.ingest(msg)
                 if self._anchor is None or msg.timestamp >= self._anchor[0]:
                     self._anchor = (msg.timestamp, time.monotonic())
-            est = self.estimated_bus_time()
-            if est is not None:
-                self.runtime.advance(est - self.grace_s)
+            else:
+                # the socket is drained: only now may ticks run ahead of the frames, or a
+                # backlog of received but unread frames would miss their ticks
+                est = self.estimated_bus_time()
+                if est is not None:
+                    self.runtime.advance(est - self.grace_s)
             for out in self.runtime.take_outbox():
                 try:
                     self.bus.send(out)

@@ -231,10 +231,12 @@ def test_played_log_through_live_runtime_agrees_with_replay(recorded, tmp_path):
     logger captures the inputs and the runtime's outputs; ``testcell replay`` of that capture
     recomputes the outputs offline.
 
-    Tolerance: outputs are encoded at 0.01 mmH2O, so they agree to 0.006 mmH2O, except where
-    udp_multicast's receive stamps put a frame on the other side of a tick boundary for the
-    two receivers (one frame of jitter). We require >= 95 % of ticks to agree to 0.006
-    and every tick to agree to 30 mmH2O (one sample's weight in the Kalman gain or the mean).
+    Tolerance: outputs are encoded at 0.01 mmH2O, so they agree to 0.006 mmH2O. The kernel
+    stamps a multicast datagram once for all its receivers, so runtime and logger see the same
+    bus times; what remains is one frame of jitter where a frame is applied on the other side
+    of a tick boundary, and output frames sent late by a busy runtime (matched to any of the
+    5 ticks before they arrived). We require >= 95 % of output frames to agree to
+    0.006 mmH2O and all to 30 mmH2O (one sample's weight in the Kalman gain or the mean).
     """
     db = load()
     sim_ids = {m.frame_id for m in db.db.messages if m.senders == ["SIM"]}
@@ -278,11 +280,14 @@ def test_played_log_through_live_runtime_agrees_with_replay(recorded, tmp_path):
         assert len(pairs) > 50, name
         diffs = []
         for ts, value in pairs:
-            i = np.searchsorted(ticks, ts - 1e-9) - 1  # the last tick before the frame was sent
-            if i < 0 or np.isnan(replay_vals[name][i]):
-                continue
-            diffs.append(abs(value - replay_vals[name][i]))
+            # the frame was sent at the tick just before it, or later if the runtime was busy
+            i = np.searchsorted(ticks, ts - 1e-9)
+            window = replay_vals[name][max(0, i - 5):i]
+            window = window[~np.isnan(window)]
+            if window.size:
+                diffs.append(np.abs(window - value).min())
         diffs = np.array(diffs)
         assert len(diffs) > 0.9 * len(pairs), name
-        assert np.mean(diffs < 0.006) >= 0.95, (name, np.sort(diffs)[-10:])
+        bad = np.nonzero(diffs >= 0.006)[0]
+        assert np.mean(diffs < 0.006) >= 0.95, (name, len(diffs), bad[:40], np.sort(diffs)[-10:])
         assert diffs.max() < 30.0, name

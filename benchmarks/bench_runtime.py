@@ -2,6 +2,11 @@
 
 Run: ``.venv/bin/python benchmarks/bench_runtime.py [SECONDS]``
 
+Issue 4's goal: one hour of cell traffic through every native filter at >= 1000x real time.
+The default replays 600 s of traffic (216 000 frames) and reports x real time; the cost per
+frame does not depend on the length, and an hour of frames as Python objects would need
+~0.5 GB.
+
 The reference is the most frames a 500 kbit/s classic CAN bus can carry: an 8-byte
 standard frame is at most 135 bits with worst-case stuffing (plus 3 bits interframe
 space), so 500 000 / 138 ≈ 3623 frames/s. The cell's own traffic is ~360 frames/s.
@@ -20,13 +25,12 @@ from cell.runtime import Runtime
 BUS_LIMIT_FPS = 500_000 / 138
 
 
-def main(seconds: float = 120.0) -> None:
+def main(seconds: float = 600.0) -> None:
     db = load()
     frames = list(simulate(db, "transient", seed=0, duration=seconds))
     rt = Runtime(db, native_filters())
     t0 = time.perf_counter()
-    for msg in frames:
-        rt.ingest(msg)
+    rt.ingest_many(frames)
     rt.advance(frames[-1].timestamp)
     elapsed = time.perf_counter() - t0
 
@@ -40,9 +44,10 @@ def main(seconds: float = 120.0) -> None:
           f"{len(rt.blocks)} native filters in {elapsed:.2f} s")
     print(f"  runtime:            {fps:10.0f} frames/s = {fps / BUS_LIMIT_FPS:6.2f} x the "
           f"500 kbit/s bus limit ({BUS_LIMIT_FPS:.0f} frames/s), {seconds / elapsed:6.1f} x real time")
-    print(f"  cantools decode only: {len(frames) / decode_only:8.0f} frames/s "
-          f"(runtime = {decode_only / elapsed:.0%} decode)")
+    print(f"  cantools decode of every frame, for scale: {len(frames) / decode_only:8.0f} frames/s "
+          "(the runtime decodes only the newest frame of each message per tick)")
+    print(f"  goal: >= 1000 x real time -> {'met' if seconds / elapsed >= 1000 else 'NOT met'}")
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else 120.0)
+    main(float(sys.argv[1]) if len(sys.argv) > 1 else 600.0)

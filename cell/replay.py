@@ -119,10 +119,14 @@ def replay(
     runtime.tick_listeners.append(on_tick)
     last_ts = None
     try:
-        for msg in read_log(log, progress=progress):
-            runtime.ingest(msg)
-            result.frames += 1
-            last_ts = msg.timestamp if last_ts is None else max(last_ts, msg.timestamp)
+        def counted():
+            nonlocal last_ts
+            for msg in read_log(log, progress=progress):
+                last_ts = msg.timestamp if last_ts is None else max(last_ts, msg.timestamp)
+                result.frames += 1
+                yield msg
+
+        runtime.ingest_many(counted())
     except LogFormatError as exc:
         result.error = exc
     finally:

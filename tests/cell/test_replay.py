@@ -68,6 +68,7 @@ def test_malformed_line_stops_with_its_number_and_keeps_rows(db, log_file, tmp_p
     assert 55 <= len(rows) <= 61  # 600 frame pairs ~ 6 s of ticks were kept
     result = replay(Runtime(db, native_filters()), bad, None, progress=False)
     assert result.error.line == 1201
+    assert result.frames == 1200  # every frame before the bad line was applied
 
 
 def test_missing_or_unknown_log(tmp_path, db):

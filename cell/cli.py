@@ -55,7 +55,8 @@ def build_runtime(args: argparse.Namespace, store=None):
     given = getattr(args, "script", None)
     if not given or getattr(args, "native", False):
         # controllers start disabled: they keep off the bus until enabled over HTTP
-        for block in [*native_filters(), *adaptive_filters(), *controllers("kalman")]:
+        pi = [] if getattr(args, "no_controllers", False) else controllers("kalman")
+        for block in [*native_filters(), *adaptive_filters(), *pi]:
             rt.add_block(block)
     scripts = ScriptManager(rt, store)
     if given:
@@ -225,6 +226,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="simulator duty cycle")
     up.add_argument("--valve", type=float, default=None,
                     help="simulator valve opening %% until a demand arrives")
+    up.add_argument("--no-controllers", action="store_true",
+                    help="no native PI controllers (e.g. to drive the valve from a script)")
     up.add_argument("--state", default=None, type=Path,
                     help="tuning file (default $XDG_STATE_HOME/testcell/tuning.json)")
     _common_runtime_options(up)

@@ -153,3 +153,29 @@ def test_scripts_constants_and_removals_survive_restart(db, tmp_path):
     names = {s["name"] for s in c2.get("/scripts").json()}
     assert names == {"kalman.fdv", "kalman.labels", "maf.fdv", "count.fdv"}
     assert rt2.blocks["kalman.fdv"].constants()["R_EXH_BP_L"] == 5e-4
+
+
+def test_put_ravg_replaces_the_running_averages_of_its_set(db, tmp_path):
+    rt, mgr, store, c = make(db, tmp_path)
+    feed(rt, db, 0.0, 3.0)
+    # a running-average-only set: a 10-sample window of the raw right bank
+    r = c.put("/scripts/stats.ravg", content="EXH_BP_R 10 MED a_BP_R_10.\n")
+    assert r.status_code == 201, r.text
+    feed(rt, db, 3.0, 5.0)
+    assert rt.channels["a_BP_R_10.NM"].value == 10
+    assert rt.channels["a_BP_R_10.AV"].status == "ok"
+    # the .ravg of an existing .labels set: same labels, new running averages
+    old = c.get("/scripts/maf.labels").json()
+    assert old["ravg_source"]
+    new_ravg = old["ravg_source"].replace(" 30 ", " 20 ")
+    assert new_ravg != old["ravg_source"]
+    r = c.put("/scripts/maf.ravg", content=new_ravg)
+    assert r.status_code == 200, r.text
+    now = c.get("/scripts/maf.labels").json()
+    assert now["ravg_source"] == new_ravg and now["source"] == old["source"]
+    feed(rt, db, 5.0, 10.0)
+    assert rt.channels["a_EXH_BP_R_maf.NM"].value == 20
+    assert (tmp_path / "scripts" / "maf.ravg").read_text() == new_ravg
+    rt2, mgr2, store2, c2 = make(db, tmp_path)  # restart: the changed set comes back whole
+    assert c2.get("/scripts/maf.labels").json()["ravg_source"] == new_ravg
+    assert "stats.ravg" in {s["name"] for s in c2.get("/scripts").json()}

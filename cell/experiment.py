@@ -470,8 +470,8 @@ def plot_gain_map(path: Path, grids: dict[str, dict[tuple[float, float], Summary
             if s.settling_time_s is not None:
                 z[kps.index(kp), kis.index(ki)] = s.settling_time_s
         im = ax.imshow(z, origin="lower", cmap="viridis_r", aspect="auto", vmin=0, vmax=200)
-        for i, kp in enumerate(kps):
-            for j, ki in enumerate(kis):
+        for i in range(len(kps)):
+            for j in range(len(kis)):
                 v = z[i, j]
                 ax.text(j, i, "✕" if np.isnan(v) else f"{v:.0f}", ha="center", va="center",
                         fontsize=8, color="w" if np.isnan(v) or v > 100 else "k")

@@ -11,8 +11,6 @@ atomic; a script that does not compile never replaces the running one.
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -21,23 +19,9 @@ from .errors import ConfigError, UnknownBlockError
 from .formula import ScriptBlock, ScriptError, load_script, shipped_scripts
 from .formula.registry import suffix_of
 from .runtime import Runtime
-from .tuning import TuningStore
+from .tuning import TuningStore, write_text_atomic
 
 log = logging.getLogger(__name__)
-
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 @dataclass
@@ -234,9 +218,9 @@ class ScriptManager:
             return
         if src.shipped:
             return
-        _write_text_atomic(self.folder / name, src.text)
+        write_text_atomic(self.folder / name, src.text)
         if src.ravg is not None and suffix_of(name) == ".labels":
-            _write_text_atomic((self.folder / name).with_suffix(".ravg"), src.ravg)
+            write_text_atomic((self.folder / name).with_suffix(".ravg"), src.ravg)
 
     def describe(self, name: str) -> dict[str, Any]:
         with self.runtime.lock:

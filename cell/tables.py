@@ -39,7 +39,8 @@ def write_csv(path: Path, columns: list[str], rows: Rows, units: dict[str, str],
             fh.write(f"# {note}\n")
 
 
-def write_parquet(path: Path, columns: list[str], rows: Rows, units: dict[str, str], note: str | None) -> None:
+def write_parquet(path: Path, columns: list[str], rows: Rows, units: dict[str, str],
+                  note: str | None) -> None:
     try:
         import pyarrow as pa
         import pyarrow.parquet as pq

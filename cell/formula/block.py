@@ -83,6 +83,15 @@ class ScriptBlock(Block):
         self._outputs_set = frozenset()
 
     # -- runtime errors ---------------------------------------------------------------
+    def _finish(self, out: dict[str, float], bad: dict[str, str]) -> dict[str, float]:
+        """Count the step; mark the outputs that failed, or clear last tick's marks."""
+        self.steps += 1
+        if bad:
+            self._mark(out, bad)
+        elif self.errors:
+            self.errors = {}
+        return out
+
     def _mark(self, out: dict[str, float], bad: dict[str, str]) -> None:
         errors: dict[str, str] = {}
         outputs = self._outputs_set

@@ -545,12 +545,7 @@ class CyflexBlock(ScriptBlock):
             out = fn(self._S, inputs, bad, t, self._ravg)
         except KeyError as exc:
             raise KeyError(f"script {self.name} needs input {exc.args[0]!r}") from None
-        self.steps += 1
-        if bad:
-            self._mark(out, bad)
-        elif self.errors:
-            self.errors = {}
-        return out
+        return self._finish(out, bad)
 
     def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         return self.step(t, inputs, getattr(self, "ticking", None))

@@ -368,12 +368,7 @@ class FdvBlock(ScriptBlock):
             out = self._run(self._S, inputs, bad)
         except KeyError as exc:
             raise KeyError(f"script {self.name} needs input {exc.args[0]!r}") from None
-        self.steps += 1
-        if bad:
-            self._mark(out, bad)
-        elif self.errors:
-            self.errors = {}
-        return out
+        return self._finish(out, bad)
 
     def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         return self.step(t, inputs)

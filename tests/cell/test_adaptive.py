@@ -7,35 +7,17 @@ import pytest
 from cell.adaptive import AdaptiveFilter, adaptive_filters
 from cell.errors import ParamError
 from cell.filters import native_filters
-from cell.plant import duty_cycle, simulate
-from cell.runtime import Runtime
+from cell.plant import duty_cycle
+
+from .transient import run_cycle, time_to_63
 
 NAMES = ["EXH_BP_R_TRUE", "EXH_BP_R_MAF", "EXH_BP_R_Kalman", "EXH_BP_R_Adaptive"]
 SEEDS = (0, 1, 2)
 
 
-def run_cycle(db, seed):
-    rt = Runtime(db, [*native_filters(), *adaptive_filters()])
-    rows = []
-    rt.tick_listeners.append(lambda t: rows.append([t, *(rt.channels[n].value for n in NAMES)]))
-    last = 0.0
-    for msg in simulate(db, "transient", seed):
-        rt.ingest(msg)
-        last = msg.timestamp
-    rt.advance(last)
-    return np.array(rows, dtype=float).T
-
-
-def time_to_63(t, x, truth, step):
-    before = truth[(t >= step - 5) & (t < step)].mean()
-    after = truth[(t >= step + 20) & (t < step + 34)].mean()
-    crossed = np.nonzero((t >= step) & ((x - before) / (after - before) >= 0.63))[0]
-    return t[crossed[0]] - step
-
-
 @pytest.fixture(scope="module")
 def runs(db):
-    return [run_cycle(db, s) for s in SEEDS]
+    return [run_cycle(db, [*native_filters(), *adaptive_filters()], NAMES, s) for s in SEEDS]
 
 
 def test_lag_no_worse_than_kalman_and_smoothing_no_worse_than_moving_average(runs):

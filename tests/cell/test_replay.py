@@ -144,7 +144,8 @@ def test_replay_with_scripts_runs_exactly_those(log_file, tmp_path):
     assert main(["replay", str(log_file), "--script", str(fdv), "--out", str(out), "--quiet"]) == 0
     cols = open(out).readline().strip().split(",")
     assert "EXH_BP_R_Kalman_FDV" in cols and "EXH_BP_R_Kalman" not in cols and "EXH_BP_R_MAF_CYF" not in cols
-    assert main(["replay", str(log_file), "--script", str(fdv), "--native", "--out", str(out), "--quiet"]) == 0
+    assert main(["replay", str(log_file), "--script", str(fdv), "--native", "--out", str(out),
+                 "--quiet"]) == 0
     cols = open(out).readline().strip().split(",")
     assert "EXH_BP_R_Kalman_FDV" in cols and "EXH_BP_R_Kalman" in cols
     # without --script: what testcell up runs, native and shipped side by side

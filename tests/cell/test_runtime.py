@@ -89,7 +89,8 @@ def test_undecodable_frames_are_counted_and_ignored(db):
     rt.ingest(bp(db, 0.0, 500.0))
     rt.ingest(can.Message(timestamp=0.01, arbitration_id=0x7AB, data=b"\x00" * 8, is_extended_id=False))
     rt.ingest(can.Message(timestamp=0.02, arbitration_id=0x101, data=b"\x01\x02\x03", is_extended_id=False))
-    rt.ingest(can.Message(timestamp=0.03, arbitration_id=0x101, data=b"\x00" * 12, is_extended_id=False, is_fd=True))
+    rt.ingest(can.Message(timestamp=0.03, arbitration_id=0x101, data=b"\x00" * 12,
+                          is_extended_id=False, is_fd=True))
     h = rt.health()
     assert h["decode_errors"] == {"unknown_id": 1, "bad_length": 2, "decode_error": 0}
     assert h["frames"] == 4

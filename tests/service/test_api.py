@@ -49,7 +49,8 @@ def test_health_counts_frames_and_errors(client, cell, db):
 
 def test_channels_list_and_one(client):
     chans = {c["name"]: c for c in client.get("/channels").json()}
-    for name in ("EXH_BP_L", "EXH_BP_R", "EXH_BP_L_MAF", "EXH_BP_R_MAF", "EXH_BP_L_Kalman", "EXH_BP_R_Kalman"):
+    for name in ("EXH_BP_L", "EXH_BP_R", "EXH_BP_L_MAF", "EXH_BP_R_MAF", "EXH_BP_L_Kalman",
+                 "EXH_BP_R_Kalman"):
         assert chans[name]["status"] == "ok"
         assert chans[name]["unit"] == "mmH2O"
     one = client.get("/channels/EXH_BP_R_Kalman").json()
@@ -250,7 +251,8 @@ def test_autotune_estimates_from_history_and_applies_only_on_request(db, tmp_pat
     r = c.post("/filters/EXH_BP_R_Kalman/autotune", json={"minutes": 5, "apply": True})
     assert r.status_code == 200
     assert rt.blocks["EXH_BP_R_Kalman"].Q == pytest.approx(r.json()["Q"])
-    assert json.loads(store.path.read_text())["filters"]["EXH_BP_R_Kalman"]["R"] == pytest.approx(r.json()["R"])
+    saved = json.loads(store.path.read_text())["filters"]["EXH_BP_R_Kalman"]
+    assert saved["R"] == pytest.approx(r.json()["R"])
 
     for body in ({"minutes": 0}, {"minutes": "5"}, {"apply": "yes"}, {"method": "guess"}, {"hours": 1}):
         assert c.post("/filters/EXH_BP_L_Kalman/autotune", json=body).status_code == 422, body

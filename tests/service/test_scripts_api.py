@@ -50,7 +50,8 @@ def feed(rt, db, t0, t1, value=lambda t: 680.0 + 30 * math.sin(t)):
 
 def test_shipped_scripts_run_beside_native_filters(db, tmp_path):
     rt, mgr, store, c = make(db, tmp_path)
-    assert {s["name"] for s in c.get("/scripts").json()} == {"kalman.fdv", "kalman.labels", "maf.fdv", "maf.labels"}
+    names = {s["name"] for s in c.get("/scripts").json()}
+    assert names == {"kalman.fdv", "kalman.labels", "maf.fdv", "maf.labels"}
     feed(rt, db, 0.0, 20.0)
     chans = {ch["name"]: ch for ch in c.get("/channels").json()}
     for bank in "LR":
@@ -98,7 +99,8 @@ def test_bad_put_is_400_with_positions_and_keeps_the_running_script(db, tmp_path
 
 def test_one_producer_per_channel(db, tmp_path):
     rt, mgr, store, c = make(db, tmp_path)
-    r = c.put("/scripts/clash.fdv", content="[formulas]\npublic EXH_BP_R_Kalman\nEXH_BP_R_Kalman = EXH_BP_R\n")
+    clash = "[formulas]\npublic EXH_BP_R_Kalman\nEXH_BP_R_Kalman = EXH_BP_R\n"
+    r = c.put("/scripts/clash.fdv", content=clash)
     assert r.status_code == 409
     assert "clash.fdv" in r.json()["detail"] and "EXH_BP_R_Kalman" in r.json()["detail"]
     assert "clash.fdv" not in c.get("/scripts").text

@@ -15,12 +15,12 @@ TEXT = files("cell.formula").joinpath("examples/pi_controller.fdv").read_text()
 
 def reference_pi(measurements, kp=0.005, ki=0.013, dt=0.1, sp=680.0, rate=5.0):
     """Reverse-acting PI with conditional integration and a rate limit, written plainly."""
-    I, u, out = 100.0, 100.0, []
+    integ, u, out = 100.0, 100.0, []
     for y in measurements:
         e = y - sp
-        want = kp * e + I + ki * e * dt
+        want = kp * e + integ + ki * e * dt
         if 0.0 <= want <= 100.0:
-            I = I + ki * e * dt
+            integ = integ + ki * e * dt
         target = min(max(want, 0.0), 100.0)
         u = u + min(max(target - u, -rate * dt), rate * dt)
         out.append(u)

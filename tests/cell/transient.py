@@ -1,0 +1,27 @@
+"""Scoring filters on the ``transient`` duty cycle against simulator truth (shared by tests)."""
+
+import numpy as np
+
+from cell.plant import simulate
+from cell.runtime import Runtime
+
+
+def run_cycle(db, blocks, names, seed):
+    """Run the transient cycle's frames through ``blocks``; rows of (t, *names) per MED tick."""
+    rt = Runtime(db, blocks)
+    rows = []
+    rt.tick_listeners.append(lambda t: rows.append([t, *(rt.channels[n].value for n in names)]))
+    last = 0.0
+    for msg in simulate(db, "transient", seed):
+        rt.ingest(msg)
+        last = msg.timestamp
+    rt.advance(last)
+    return np.array(rows, dtype=float).T
+
+
+def time_to_63(t, x, truth, step):
+    """Seconds from a step until ``x`` covers 63 % of the truth's change across it."""
+    before = truth[(t >= step - 5) & (t < step)].mean()
+    after = truth[(t >= step + 20) & (t < step + 34)].mean()
+    crossed = np.nonzero((t >= step) & ((x - before) / (after - before) >= 0.63))[0]
+    return t[crossed[0]] - step

@@ -872,7 +872,9 @@ def plot_png(
                 lbl = f"Kalman Q={row['Q']:.3g}, R={row['R']:.3g}"
                 if row.get("rmse") is not None:
                     lbl += f" (RMSE {row['rmse']:.1f})"
-                ax.plot(t, x[sel, i], lw=1.2, label=lbl)
+                # Kalman pairs in blues/greens/purples, never the moving average's orange
+                ax.plot(t, x[sel, i], lw=1.2, label=lbl,
+                        color=("tab:blue", "tab:green", "tab:purple", "tab:cyan", "tab:olive")[i % 5])
         ax.set_xlabel("time [s]")
         ax.set_ylabel(series.channel)
         ax.grid(alpha=0.3)

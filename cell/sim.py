@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import signal
 import threading
 import time
 from dataclasses import replace
@@ -55,8 +56,8 @@ def apply_demand(plant: Plant, db: CellDatabase, msg: can.Message) -> bool:
         return False
     if message.name != DEMAND_MESSAGE:
         return False
-    for bank, signal in _DEMAND_SIGNALS:
-        v = values.get(signal)
+    for bank, sig in _DEMAND_SIGNALS:
+        v = values.get(sig)
         if v is not None and math.isfinite(v):
             plant.set_demand(bank, v)
     return True
@@ -299,6 +300,10 @@ def check_arguments(args: argparse.Namespace) -> None:
         raise ConfigError(f"--bp-limit must be in (0, 20000] mmH2O, got {limit}")
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def main(args: argparse.Namespace, stop_event: threading.Event | None = None) -> int:
     """Run ``testcell sim``; return the exit code.
 
@@ -318,6 +323,9 @@ def main(args: argparse.Namespace, stop_event: threading.Event | None = None) ->
         logger.info("wrote %d frames to %s", n, args.out)
         return 0
     bus = open_bus(args.bus)
+    if threading.current_thread() is threading.main_thread():
+        # SIGTERM (testcell up stopping, docker stop) ends the run like Ctrl-C: bus closed
+        signal.signal(signal.SIGTERM, _interrupt)
     try:
         run(
             bus,

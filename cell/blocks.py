@@ -68,6 +68,8 @@ class Block:
     PARAMS: ClassVar[dict[str, Param]] = {}
     #: whether the block's DBC outputs go onto the bus (a disabled controller keeps off it)
     on_bus: bool = True
+    #: parameters that are saved but not restored at start-up (a controller starts disabled)
+    VOLATILE: ClassVar[tuple[str, ...]] = ()
 
     def __init__(
         self, name: str, inputs: list[str], outputs: list[str], rate: str | tuple[str, ...] = "MED"

@@ -254,6 +254,9 @@ class PIController(Block):
             self._starting = True
 
     # -- stepping -------------------------------------------------------------------
+    #: a restarted cell never drives the valve until someone enables the loop again
+    VOLATILE = ("enable",)
+
     @property
     def on_bus(self) -> bool:  # type: ignore[override]
         """A disabled controller keeps its demand off the bus: the valve holds its opening."""

@@ -78,6 +78,9 @@ class TuningStore:
         skipped = []
         for section in sections:
             for name, params in list(self.data.get(section, {}).items()):
+                block = runtime.blocks.get(name)
+                volatile = getattr(block, "VOLATILE", ())
+                params = {k: v for k, v in params.items() if k not in volatile}
                 try:
                     runtime.set_params(name, params, family=section[:-1])
                 except (UnknownBlockError, ParamError) as exc:

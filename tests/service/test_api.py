@@ -258,3 +258,19 @@ def test_autotune_estimates_from_history_and_applies_only_on_request(db, tmp_pat
         assert c.post("/filters/EXH_BP_L_Kalman/autotune", json=body).status_code == 422, body
     assert c.post("/filters/EXH_BP_L_MAF/autotune", json={}).status_code == 422
     assert c.post("/filters/NOPE/autotune", json={}).status_code == 404
+
+
+def test_restart_restores_controller_tuning_but_never_enables_the_loop(db, tmp_path):
+    from cell.controller import controllers
+
+    path = tmp_path / "tuning.json"
+    rt = Runtime(db, controllers("kalman"))
+    store = TuningStore(path)
+    c = TestClient(create_app(Cell(runtime=rt, tuning=store)))
+    assert c.patch("/controllers/PI_R", json={"enable": True, "kp": 0.004}).status_code == 200
+    rt2 = Runtime(db, controllers("kalman"))
+    store2 = TuningStore(path)
+    store2.load()
+    assert store2.restore(rt2) == []
+    assert rt2.blocks["PI_R"].kp == 0.004
+    assert rt2.blocks["PI_R"].enable is False

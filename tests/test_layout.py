@@ -29,8 +29,17 @@ def test_docker_compose_structure():
     rt = services["runtime"]["command"]
     assert rt[0] == "up" and "--no-sim" in rt and "--port" in rt
     assert (ROOT / "Dockerfile").exists()
-    if shutil.which("docker") and subprocess.run(["docker", "info"], capture_output=True).returncode == 0:
-        subprocess.run(["docker", "compose", "config", "-q"], cwd=ROOT, check=True)
+
+
+def _docker_engine() -> bool:
+    return bool(shutil.which("docker")) and subprocess.run(
+        ["docker", "info"], capture_output=True).returncode == 0
+
+
+@pytest.mark.skipif(not _docker_engine(), reason="no Docker engine on this machine (the docker "
+                    "client alone cannot validate or run docker-compose.yml)")
+def test_docker_compose_config_validates():
+    subprocess.run(["docker", "compose", "config", "-q"], cwd=ROOT, check=True)
 
 
 def test_readme_gives_the_two_commands():

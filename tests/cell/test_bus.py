@@ -95,3 +95,18 @@ def test_udp_multicast_between_two_buses_without_echo():
     finally:
         a.shutdown()
         b.shutdown()
+
+
+@pytest.mark.skipif(not cellbus.have_socketcan("vcan0"),
+                    reason="no vcan0: this kernel has no SocketCAN here (scripts/setup-vcan.sh creates it "
+                           "where the vcan module exists)")
+def test_socketcan_vcan0_round_trip():
+    a, b = open_bus("socketcan"), open_bus("socketcan")
+    try:
+        assert a.spec == BusSpec("socketcan", "vcan0")
+        a.send(can.Message(arbitration_id=0x200, data=b"\x10\x27\x10\x27", is_extended_id=False))
+        got = b.recv(2.0)
+        assert got is not None and got.arbitration_id == 0x200
+    finally:
+        a.shutdown()
+        b.shutdown()

@@ -125,6 +125,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     bus = open_bus(spec)
     sim_proc = None
     sim_thread = None
+    sim_bus = None
     sim_stop = threading.Event()
     try:
         if not args.no_sim:
@@ -154,6 +155,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         _stop_process(sim_proc)
         if sim_thread is not None:
             sim_thread.join(2)
+        if sim_bus is not None:
+            sim_bus.shutdown()
         bus.shutdown()
     return 0
 

@@ -199,6 +199,23 @@ class ScriptBlock(Block):
         })
         return out
 
+    def _error_helpers(self, table: list[tuple[str, int, int]]) -> dict[str, Any]:
+        """``_why``/``_dep`` for generated code: the reason a statement failed, by its index
+        in ``table`` (target, line, column), and the reason a statement reading a failed
+        value is skipped."""
+
+        def why(k: int, exc: BaseException) -> str:
+            target, line, col = table[k]
+            return self.why(target, line, col, exc)
+
+        def dep(bad: dict[str, str], reads: tuple[str, ...]) -> str:
+            for r in reads:
+                if r in bad:
+                    return bad[r]
+            return "depends on an invalid value"  # pragma: no cover
+
+        return {"_why": why, "_dep": dep}
+
     @staticmethod
     def why(target: str, line: int, column: int, exc: BaseException) -> str:
         return f"{target} (line {line}:{column}): {reason(exc)}"

@@ -485,17 +485,7 @@ class CyflexBlock(ScriptBlock):
         text = "\n".join(src) + "\n"
         self.generated["+".join(r for r in RATE_NAMES if r in ticking)] = text
 
-        def why(k: int, exc: BaseException) -> str:
-            target, line, col = table[k]
-            return self.why(target, line, col, exc)
-
-        def dep(bad: dict[str, str], reads: tuple[str, ...]) -> str:
-            for r in reads:
-                if r in bad:
-                    return bad[r]
-            return "depends on an invalid value"  # pragma: no cover
-
-        ns = compile_functions(text, f"<labels {self.name}>", {"_why": why, "_dep": dep})
+        ns = compile_functions(text, f"<labels {self.name}>", self._error_helpers(table))
         return ns["_tick"]
 
     def _ravg(self, j: int, t: float, value: float | None, out: dict[str, float],

@@ -339,17 +339,7 @@ class FdvBlock(ScriptBlock):
             assert _IDENT.fullmatch(n), n  # only identifiers reach the generated code
         self.generated = "\n".join(src) + "\n"
 
-        def why(k: int, exc: BaseException) -> str:
-            target, line, col = table[k]
-            return self.why(target, line, col, exc)
-
-        def dep(bad: dict[str, str], reads: tuple[str, ...]) -> str:
-            for r in reads:
-                if r in bad:
-                    return bad[r]
-            return "depends on an invalid value"  # pragma: no cover
-
-        ns = compile_functions(self.generated, f"<fdv {self.name}>", {"_why": why, "_dep": dep})
+        ns = compile_functions(self.generated, f"<fdv {self.name}>", self._error_helpers(table))
         self._run = ns["_formulas"]
         failed = ns["_init"](self._S)
         if failed is not None:

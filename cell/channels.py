@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-import collections
 import math
-from dataclasses import dataclass, field
+from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 OK, STALE, INVALID = "ok", "stale", "invalid"
 
@@ -26,7 +28,6 @@ class Channel:
     t: float | None = None
     status: str = STALE
     reason: str | None = "no value yet"
-    history: collections.deque = field(default_factory=lambda: collections.deque(maxlen=6000))
 
     def update(self, value: float, t: float) -> None:
         self.value = value
@@ -60,3 +61,51 @@ class Channel:
             "reason": reason,
             "source": self.source,
         }
+
+
+_CODES = {OK: 0, STALE: 1, INVALID: 2}
+_NAMES = np.array([OK, STALE, INVALID], dtype=object)
+
+
+class History:
+    """Every channel's value and status at each MED tick, in fixed-size ring buffers.
+
+    All channels share one time axis, so a tick costs one float and one byte per channel;
+    a channel that appears later reads as stale before it appeared.
+    """
+
+    def __init__(self, length: int) -> None:
+        self.length = max(1, int(length))
+        self.t = np.full(self.length, np.nan)
+        self.values: dict[str, np.ndarray] = {}
+        self.codes: dict[str, np.ndarray] = {}
+        self._next = 0
+        self._count = 0
+
+    def record(self, t: float, rows: Iterable[tuple[str, float | None, str]]) -> None:
+        k = self._next
+        self.t[k] = t
+        for name, value, status in rows:
+            values = self.values.get(name)
+            if values is None:
+                values = self.values[name] = np.full(self.length, np.nan)
+                self.codes[name] = np.full(self.length, _CODES[STALE], dtype=np.uint8)
+            values[k] = np.nan if value is None else value
+            self.codes[name][k] = _CODES[status]
+        self._next = (k + 1) % self.length
+        self._count = min(self._count + 1, self.length)
+
+    def drop(self, name: str) -> None:
+        self.values.pop(name, None)
+        self.codes.pop(name, None)
+
+    def series(self, name: str, seconds: float) -> list[tuple[float, float | None, str]]:
+        """``(time, value or None, status)`` over the last ``seconds`` of ticks, oldest first."""
+        if self._count == 0 or name not in self.values:
+            return []
+        order = np.arange(self._next - self._count, self._next) % self.length
+        t = self.t[order]
+        keep = order[t > t[-1] - seconds + 1e-9]
+        values, codes = self.values[name][keep], _NAMES[self.codes[name][keep]]
+        return [(float(tt), None if math.isnan(v) else float(v), str(c))
+                for tt, v, c in zip(self.t[keep], values, codes)]

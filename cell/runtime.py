@@ -19,7 +19,7 @@ from typing import Any
 import can
 
 from .blocks import RATE_NAMES, Block
-from .channels import INVALID, OK, STALE, Channel
+from .channels import INVALID, OK, STALE, Channel, History
 from .dbc import DECODE_ERROR_KINDS, CellDatabase, FrameDecodeError
 from .errors import ConfigError, ParamError, UnknownBlockError
 
@@ -88,6 +88,7 @@ class Runtime:
         self.rates = rates or Rates()
         self.lock = threading.RLock()
         self.history_len = max(1, int(round(history_s * self.rates.MED)))
+        self._history = History(self.history_len)
         self._channels: dict[str, Channel] = {}
         #: newest undecoded frame per message: frames are decoded when a tick or a reader
         #: needs their values, so the ten frames of a 100 Hz message between two 10 Hz
@@ -148,6 +149,7 @@ class Runtime:
             for out in block.outputs:
                 self.producer.pop(out, None)
                 self._channels.pop(out, None)
+                self._history.drop(out)
             return block
 
     def block(self, name: str, family: str | None = None) -> Block:
@@ -176,7 +178,6 @@ class Runtime:
                 unit=info.unit if info else "",
                 source=source,
                 stale_after=stale_after,
-                history=collections.deque(maxlen=self.history_len),
             )
             self._channels[name] = ch
         return ch
@@ -349,9 +350,11 @@ class Runtime:
             self.outbox.append(self.db.encode(message.name, {c.name: c.value for c in chans}, t))
 
     def _after_med_tick(self, t: float) -> None:
+        rows = []
         for ch in self._channels.values():
             status, _ = ch.status_at(t)
-            ch.history.append((t, ch.value if status == OK else None, status))
+            rows.append((ch.name, ch.value if status == OK else None, status))
+        self._history.record(t, rows)
         for listener in self.tick_listeners:
             listener(t)
 
@@ -375,11 +378,8 @@ class Runtime:
 
     def history(self, name: str, seconds: float) -> list[tuple[float, float | None, str]]:
         with self.lock:
-            ch = self.channel(name)
-            if not ch.history:
-                return []
-            end = ch.history[-1][0]
-            return [p for p in ch.history if p[0] > end - seconds + _EPS]
+            self.channel(name)  # 404 for an unknown channel
+            return self._history.series(name, seconds)
 
     def health(self) -> dict[str, Any]:
         with self.lock:

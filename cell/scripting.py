@@ -143,7 +143,7 @@ class ScriptManager:
                     rt.add_block(old)
                 raise
             for out, unit in getattr(new, "units", {}).items():
-                ch = rt._channel(out, source=name)
+                ch = rt.channels[out]  # add_block made it
                 ch.unit = ch.unit or (unit if unit and unit != "none" else "")
             self.sources[name] = src
         return new, kept
@@ -230,6 +230,6 @@ class ScriptManager:
             d["ravg_source"] = src.ravg
             d["shipped"] = src.shipped
             rt = self.runtime
-            d["status"] = {out: rt._channels[out].status for out in block.outputs
-                           if out in rt._channels}
+            chans = rt.channels
+            d["status"] = {out: chans[out].status for out in block.outputs if out in chans}
             return d

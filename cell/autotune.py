@@ -69,7 +69,7 @@ from typing import Any
 import numpy as np
 
 from .errors import ConfigError
-from .sweep import as_samples, kalman_bank, steady_state_gain
+from .sweep import add_log_options, as_samples, kalman_bank, steady_state_gain
 
 METHODS = ("ml", "als")
 #: Fewest valid samples :func:`autotune` accepts.
@@ -391,10 +391,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ml: maximum likelihood on the innovations (default); "
                              "als: autocovariance least squares")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    parser.add_argument("--cycle", default=None, metavar="HZ|FAS=..,MED=..,SLO=..",
-                        help="task rates; samples are taken at MED (default 10 Hz)")
-    parser.add_argument("--dbc", default=None, help="DBC file (default: the cell's)")
+    add_log_options(parser)
 
 
 def main(args: argparse.Namespace) -> int:

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from .errors import UnknownBlockError
 from .live import LiveCell
 from .runtime import Runtime
 from .tuning import TuningStore
@@ -43,4 +42,4 @@ class Cell:
         return [b.name for b in self.runtime.blocks.values() if b.family == family]
 
 
-__all__ = ["Cell", "UnknownBlockError"]
+__all__ = ["Cell"]

@@ -21,7 +21,7 @@ import can
 from .blocks import RATE_NAMES, Block
 from .channels import INVALID, OK, STALE, Channel, History
 from .dbc import DECODE_ERROR_KINDS, CellDatabase, FrameDecodeError
-from .errors import ConfigError, ParamError, UnknownBlockError
+from .errors import ConfigError, UnknownBlockError
 
 _EPS = 1e-9
 
@@ -394,4 +394,4 @@ class Runtime:
             }
 
 
-__all__ = ["Rates", "Runtime", "ParamError"]
+__all__ = ["Rates", "Runtime"]

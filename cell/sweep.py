@@ -932,6 +932,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--top", type=int, default=10, help="rows printed (default 10)")
     parser.add_argument("--plot-top", type=int, default=3, help="pairs plotted (default 3)")
     parser.add_argument("--no-plot", action="store_true", help="do not write the PNG")
+    add_log_options(parser)
+
+
+def add_log_options(parser: argparse.ArgumentParser) -> None:
+    """Options shared by the commands that read a channel from a log (``sweep``, ``tune``)."""
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--cycle", default=None, metavar="HZ|FAS=..,MED=..,SLO=..",
                         help="task rates; samples are taken at MED (default 10 Hz)")

@@ -18,7 +18,7 @@ import sys
 import time
 
 from cell.dbc import load
-from cell.filters import native_filters
+from cell.estimators.filters import native_filters
 from cell.plant import simulate
 from cell.runtime import Runtime
 

@@ -7,7 +7,7 @@ samples (36 000) of ``EXH_BP_R``, sampled from the plant running the ``transient
 back to back (the plant is stepped directly, no CAN, to keep the set-up short). Three runs of
 the same filter, side by side in this process:
 
-- ``cell.sweep.kalman_bank``: all 72 pairs at once (best of 3);
+- ``cell.analysis.sweep.kalman_bank``: all 72 pairs at once (best of 3);
 - filterpy's ``KalmanFilter`` (``predict()``/``update()`` per sample) in a Python loop per
   pair: SUBSET pairs (default 4) are timed and the time is scaled to 72;
 - simdkalman's ``KalmanFilter.compute`` (filtering only), vectorised over the 72 pairs as 72
@@ -25,7 +25,7 @@ import time
 import numpy as np
 
 from cell.plant import DutyCycle, Plant, duty_cycle
-from cell.sweep import Series, kalman_bank, sweep, table2
+from cell.analysis.sweep import Series, kalman_bank, sweep, table2
 
 RATE_HZ = 10.0
 SECONDS = 3600.0
@@ -131,8 +131,8 @@ def main(subset: int = 4) -> None:
     t_fp = t_fp_subset * m / pick.size
     t_sk = best_of(lambda: simdkalman_run(y, Q, R))
 
-    print(f"  cell.sweep.kalman_bank, {m} pairs:        {t_bank:8.3f} s")
-    print(f"  cell.sweep.sweep (bank + all scores):    {t_sweep:8.3f} s")
+    print(f"  cell.analysis.sweep.kalman_bank, {m} pairs:        {t_bank:8.3f} s")
+    print(f"  cell.analysis.sweep.sweep (bank + all scores):    {t_sweep:8.3f} s")
     print(f"  filterpy loop, {pick.size} pairs timed:           {t_fp_subset:8.3f} s "
           f"-> {t_fp:.1f} s scaled to {m} pairs")
     print(f"  simdkalman, {m} series vectorised:        {t_sk:8.3f} s")

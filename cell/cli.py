@@ -43,10 +43,10 @@ def build_runtime(args: argparse.Namespace, store=None):
     """The runtime ``up`` and ``replay`` share: the DBC, the rates, the native blocks and the
     scripts. With ``--script`` only the given scripts run (plus the native blocks with
     ``--native``); otherwise the native blocks and the shipped (and saved) scripts."""
-    from .adaptive import adaptive_filters
+    from .estimators.adaptive import adaptive_filters
     from .controller import controllers
     from .dbc import load
-    from .filters import native_filters
+    from .estimators.filters import native_filters
     from .runtime import Rates, Runtime
     from .scripting import ScriptManager
 
@@ -189,7 +189,7 @@ PLOT_DEFAULT = ["EXH_BP_R", "EXH_BP_R_TRUE", "EXH_BP_R_MAF", "EXH_BP_R_Kalman"]
 
 
 def cmd_experiment(args: argparse.Namespace) -> int:
-    from . import experiment
+    from .experiments import closed_loop as experiment
 
     return experiment.main(args)
 
@@ -257,8 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     _common_runtime_options(rp)
     rp.set_defaults(func=cmd_replay)
-    from . import autotune as tune_module
-    from . import sweep as sweep_module
+    from .analysis import autotune as tune_module
+    from .analysis import sweep as sweep_module
 
     sp = sub.add_parser("sweep", help="Kalman Q/R sweep over a CAN log (seed 004, Tables 1-2)")
     sweep_module.add_arguments(sp)
@@ -268,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     tp.set_defaults(func=tune_module.main)
 
     ex = sub.add_parser("experiment", help="run an experiment: closed-loop (seed 004, Figure 10)")
-    from . import experiment as experiment_module
+    from .experiments import closed_loop as experiment_module
 
     experiment_module.add_arguments(ex)
     ex.set_defaults(func=cmd_experiment)

@@ -10,7 +10,7 @@ from typing import Annotated, Any, Literal
 from fastapi import HTTPException
 from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
-from cell.autotune import autotune
+from cell.analysis.autotune import autotune
 from cell.errors import ConfigError
 
 from ..deps import CellDep

@@ -8,7 +8,7 @@ import pytest
 
 from cell.cli import main
 from cell.errors import ConfigError
-from cell.filters import native_filters
+from cell.estimators.filters import native_filters
 from cell.replay import replay
 from cell.runtime import Runtime
 

@@ -5,7 +5,7 @@ import pytest
 
 from cell.blocks import Block
 from cell.errors import ConfigError
-from cell.filters import MovingAverage, ScalarKalman, native_filters
+from cell.estimators.filters import MovingAverage, ScalarKalman, native_filters
 from cell.runtime import Rates, Runtime
 
 

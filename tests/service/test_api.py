@@ -7,7 +7,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from cell.context import Cell
-from cell.filters import native_filters
+from cell.estimators.filters import native_filters
 from cell.runtime import Runtime
 from cell.tuning import TuningStore
 from service.main import create_app

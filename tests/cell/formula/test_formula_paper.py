@@ -3,14 +3,14 @@
 The independent reference is the listings' own arithmetic written out by hand below.
 As printed, both listings compute the gain from the previous posterior P, before Q is
 added (Q only enters through P_prev); the reference reproduces that quirk, and the test
-reports how far it lands from the textbook filter (cell.filters.ScalarKalman).
+reports how far it lands from the textbook filter (cell.estimators.filters.ScalarKalman).
 """
 
 import random
 
 import pytest
 
-from cell.filters import ScalarKalman
+from cell.estimators.filters import ScalarKalman
 from cell.formula import CyflexBlock, FdvBlock, ScriptError, load_script, shipped_scripts
 
 from .listings import FDV, FIG2_R, FIG3, FIG3_PRINTED

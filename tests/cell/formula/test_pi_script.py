@@ -6,7 +6,7 @@ from importlib.resources import files
 import numpy as np
 import pytest
 
-from cell.filters import native_filters
+from cell.estimators.filters import native_filters
 from cell.formula import load_script
 from cell.runtime import Runtime
 

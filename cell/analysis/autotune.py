@@ -1,7 +1,7 @@
 """Estimating the Kalman filter's Q and R from the data alone (seed 004, future work).
 
 Seed 004 tunes Q and R of its scalar filter (eqs. 2-4, A = C = 1) by eye over Tables 1-2 and
-asks, in its conclusion, for quantitative tuning. :mod:`cell.sweep` scores a grid against
+asks, in its conclusion, for quantitative tuning. :mod:`cell.analysis.sweep` scores a grid against
 simulator truth; this module needs no truth. It fits the filter's own model, a random walk
 observed in white noise,
 
@@ -18,7 +18,7 @@ Methods
     y_0), every S_k is R times the S_k of the filter with (q = Q/R, 1), so R has the closed
     form :math:`\\hat R(q) = \\frac{1}{n}\\sum e_k^2/s_k` and the likelihood is profiled
     over the ratio q alone. q is found on a log grid from 1e-8 to 1e2, vectorised over the
-    grid with :func:`cell.sweep.kalman_bank`, then refined twice on finer grids. numpy only.
+    grid with :func:`cell.analysis.sweep.kalman_bank`, then refined twice on finer grids. numpy only.
 ``als``: autocovariance least squares on the differenced series.
     For a random walk plus white noise, :math:`\\Delta y_k = v_k + w_k - w_{k-1}` has
     :math:`\\gamma_0 = Q + 2R`, :math:`\\gamma_1 = -R` and no autocovariance beyond lag 1,
@@ -68,7 +68,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError
+from ..errors import ConfigError
 from .sweep import add_log_options, as_samples, kalman_bank, steady_state_gain
 
 METHODS = ("ml", "als")

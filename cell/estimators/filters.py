@@ -6,7 +6,7 @@ import collections
 import math
 from typing import Any
 
-from .blocks import Block, Param
+from ..blocks import Block, Param
 
 #: Largest moving-average window accepted: one hour of 10 Hz samples.
 MAX_SAMPLES = 36_000

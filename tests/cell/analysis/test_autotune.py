@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from cell import autotune as at
-from cell import sweep as sw
+from cell.analysis import autotune as at
+from cell.analysis import sweep as sw
 from cell.errors import ConfigError
 from cell.sim import write_log
 

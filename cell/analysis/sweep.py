@@ -13,7 +13,7 @@ gets numbers:
   normalised innovation squared (NIS).
 
 All pairs run at once: :func:`kalman_bank` is the filter of
-:class:`cell.filters.ScalarKalman` vectorised across pairs with numpy (one Python loop over
+:class:`cell.estimators.filters.ScalarKalman` vectorised across pairs with numpy (one Python loop over
 time, none over pairs). The gain sequence does not depend on the data, so it is computed
 once per pair and stops being updated when it has converged.
 
@@ -88,7 +88,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 #: Seed 004's moving average: 30 samples at 10 Hz.
 MAF_SAMPLES = 30
@@ -213,9 +213,9 @@ def channel_series(
     LogFormatError
         A malformed log line; the message carries the file and line number.
     """
-    from .dbc import load
-    from .replay import read_log
-    from .runtime import Runtime
+    from ..dbc import load
+    from ..replay import read_log
+    from ..runtime import Runtime
 
     rt = Runtime(db or load(), rates=rates)
     truth_name = f"{channel}_TRUE" if truth is None or truth is True else truth or None
@@ -487,7 +487,7 @@ def kalman_bank(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     r"""Run the scalar Kalman filter of seed 004 (eqs. 2-4) for many (Q, R) pairs at once.
 
-    The same filter as :class:`cell.filters.ScalarKalman`: the first valid sample sets
+    The same filter as :class:`cell.estimators.filters.ScalarKalman`: the first valid sample sets
     :math:`\hat x = y_0` and :math:`P = P_0`; every later one predicts and corrects. A NaN
     sample (a stale tick) holds the state, as the runtime does when it skips a block whose
     input is stale, and its outputs are NaN. Pairs are vectorised with numpy; the only
@@ -549,7 +549,7 @@ def kalman_bank(
 
 
 def moving_average(y: Sequence[float | None] | np.ndarray, samples: int = MAF_SAMPLES) -> np.ndarray:
-    """Seed 004 eq. (1) as :class:`cell.filters.MovingAverage` runs it: the mean of the last
+    """Seed 004 eq. (1) as :class:`cell.estimators.filters.MovingAverage` runs it: the mean of the last
     ``samples`` valid samples (fewer at the start); NaN at stale ticks."""
     yy = as_samples(y)
     out = np.full(yy.size, np.nan)
@@ -945,8 +945,8 @@ def add_log_options(parser: argparse.ArgumentParser) -> None:
 
 def load_series(args: argparse.Namespace) -> Series:
     """The series a ``sweep``/``tune`` command line asks for."""
-    from .dbc import load
-    from .runtime import Rates
+    from ..dbc import load
+    from ..runtime import Rates
 
     truth: str | bool | None = getattr(args, "truth", None)
     if getattr(args, "no_truth", False):

@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 from typing import Any, ClassVar
 
-from .blocks import Block, Param
+from ..blocks import Block, Param
 
 #: Rate of the noise-scale estimate (per tick): a time constant of 10 s at 10 Hz.
 _SIGMA_RATE = 0.01

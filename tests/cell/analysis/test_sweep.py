@@ -8,9 +8,9 @@ import can
 import numpy as np
 import pytest
 
-from cell import sweep as sw
+from cell.analysis import sweep as sw
 from cell.errors import ConfigError, LogFormatError
-from cell.filters import MovingAverage, ScalarKalman, native_filters
+from cell.estimators.filters import MovingAverage, ScalarKalman, native_filters
 from cell.plant import simulate
 from cell.runtime import Runtime
 from cell.sim import write_log

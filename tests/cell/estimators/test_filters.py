@@ -7,7 +7,7 @@ import pytest
 from filterpy.kalman import KalmanFilter
 
 from cell.errors import ParamError
-from cell.filters import MAX_SAMPLES, MovingAverage, ScalarKalman
+from cell.estimators.filters import MAX_SAMPLES, MovingAverage, ScalarKalman
 
 
 def textbook_kalman(ys, Q, R, P0=1.0):

@@ -21,11 +21,11 @@ from pathlib import Path
 import can
 from tqdm import tqdm
 
-from . import dbc as dbc_mod
-from .bus import CellBus, open_bus
-from .dbc import CellDatabase, FrameDecodeError
-from .errors import ConfigError
-from .plant import CYCLES, TRIPPED, Plant, PlantParams
+from .. import dbc as dbc_mod
+from ..bus import CellBus, open_bus
+from ..dbc import CellDatabase, FrameDecodeError
+from ..errors import ConfigError
+from ..plant import CYCLES, TRIPPED, Plant, PlantParams
 
 logger = logging.getLogger(__name__)
 

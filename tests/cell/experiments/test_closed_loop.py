@@ -10,9 +10,9 @@ import json
 
 import pytest
 
-from cell import experiment
+from cell.experiments import closed_loop as experiment
 from cell.errors import ConfigError
-from cell.experiment import closed_loop, compare
+from cell.experiments.closed_loop import closed_loop, compare
 
 SEEDS = 5
 

@@ -28,8 +28,8 @@ from dataclasses import dataclass, replace
 import can
 import numpy as np
 
-from .dbc import CellDatabase
-from .errors import ConfigError
+from ..dbc import CellDatabase
+from ..errors import ConfigError
 
 BANKS = ("L", "R")
 CYCLES = ("rated", "warmup", "transient")

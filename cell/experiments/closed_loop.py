@@ -5,7 +5,7 @@ back-pressure valve 100 % open in open loop, switches a PI loop on to 680 mmH2O 
 three feedbacks: raw (unstable; an engine limit shut the engine down), the moving average
 (steady after 150 s) and the Kalman filter (steady after 110 s, "3.34-6.67 L" of fuel
 saved). This module reruns that experiment on the emulated cell, over several noise seeds,
-with a fourth feedback, the adaptive filter of :mod:`cell.adaptive` (the paper's "future
+with a fourth feedback, the adaptive filter of :mod:`cell.estimators.adaptive` (the paper's "future
 work"), and measures rather than asserts the Kalman filter's advantage.
 
 Lockstep
@@ -58,15 +58,15 @@ from typing import Any
 
 import numpy as np
 
-from . import dbc as dbc_mod
-from .adaptive import adaptive_filters
-from .controller import DEFAULT_KI, DEFAULT_KP, FEEDBACK, controllers
-from .dbc import CellDatabase
-from .errors import ConfigError
-from .filters import native_filters
-from .plant import BANKS, TRIPPED, DutyCycle, Plant, PlantParams
-from .runtime import Runtime
-from .sim import apply_demand
+from .. import dbc as dbc_mod
+from ..estimators.adaptive import adaptive_filters
+from ..controller import DEFAULT_KI, DEFAULT_KP, FEEDBACK, controllers
+from ..dbc import CellDatabase
+from ..errors import ConfigError
+from ..estimators.filters import native_filters
+from ..plant import BANKS, TRIPPED, DutyCycle, Plant, PlantParams
+from ..runtime import Runtime
+from ..sim import apply_demand
 
 FEEDBACKS = tuple(FEEDBACK)  # raw, maf, kalman, adaptive
 SETPOINT = 680.0

@@ -1,0 +1,1 @@
+"""Experiments: each a module that reproduces a paper's result on the emulated cell."""

@@ -1,0 +1,3 @@
+"""The cell's own parts, registered like a plugin's (see :mod:`cell.registry`)."""
+
+from __future__ import annotations

@@ -50,7 +50,7 @@ def build_runtime(args: argparse.Namespace, store=None):
     from .runtime import Rates, Runtime
     from .scripting import ScriptManager
 
-    db = load(getattr(args, "dbc", None))
+    db = load(tuple(getattr(args, "dbc", None) or ()))
     rt = Runtime(db, rates=Rates.parse(getattr(args, "cycle", None)))
     given = getattr(args, "script", None)
     if not given or getattr(args, "native", False):
@@ -205,7 +205,9 @@ def _common_runtime_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cycle", default=None, metavar="HZ|FAS=..,MED=..,SLO=..",
                    help="task rates in Hz: a number sets MED (default 10); or name any of "
                         "FAS/MED/SLO (defaults 50/10/1)")
-    p.add_argument("--dbc", default=None, help="DBC file (default: the cell's dbc/testcell.dbc)")
+    p.add_argument("--dbc", action="append", default=None, metavar="PATH",
+                   help="add a DBC file, or a folder of .dbc files, to the cell's own (its "
+                        "frames decode into channels); repeat for more")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -19,7 +19,7 @@ import time
 
 from cell.dbc import load
 from cell.estimators.filters import native_filters
-from cell.plant import simulate
+from cell.sim import simulate
 from cell.runtime import Runtime
 
 BUS_LIMIT_FPS = 500_000 / 138

@@ -68,6 +68,8 @@ class Block:
     PARAMS: ClassVar[dict[str, Param]] = {}
     #: whether the block's DBC outputs go onto the bus (a disabled controller keeps off it)
     on_bus: bool = True
+    #: an output without a DBC unit takes the unit of the block's single input (filters)
+    keeps_input_unit: ClassVar[bool] = False
     #: parameters that are saved but not restored at start-up (a controller starts disabled)
     VOLATILE: ClassVar[tuple[str, ...]] = ()
 

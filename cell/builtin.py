@@ -1,3 +1,34 @@
-"""The cell's own parts, registered like a plugin's (see :mod:`cell.registry`)."""
+"""The cell's own parts, registered like a plugin's: one line each (see :mod:`cell.registry`)."""
 
 from __future__ import annotations
+
+from . import registry
+from .controller import controllers
+from .estimators.adaptive import adaptive_filters
+from .estimators.filters import native_filters
+from .experiments.closed_loop import CLOSED_LOOP
+from .plant.profiles import LARGE_DIESEL
+from .registry import BlockFamily, BlockSet
+
+# block families: GET/PATCH /{section}/{name} and a section of the tuning file each
+registry.family(BlockFamily("filter", "filters", "moving-average, Kalman and adaptive filters",
+                            ({"Q": 4e-6, "R": 1e-4}, {"samples": 30})))
+registry.family(BlockFamily("controller", "controllers", "PI controllers",
+                            ({"enable": True}, {"setpoint": 680.0, "feedback": "EXH_BP_R_Kalman"},
+                             {"kp": 0.005, "ki": 0.013})))
+registry.family(BlockFamily("observer", "observers", "model-based observers on the estimator core",
+                            ({"Q": [1e-4, 1e-4], "R": [1e-2]},)))
+
+# engine profiles
+registry.engine(LARGE_DIESEL)
+
+# the runtime's native blocks
+registry.block_set(BlockSet("seed004-filters", lambda s: [*native_filters(), *adaptive_filters()],
+                            engines=("large-diesel",)))
+# the PI controllers start disabled: they keep off the bus until enabled over HTTP
+registry.block_set(BlockSet("seed004-controllers",
+                            lambda s: [] if s.no_controllers else controllers("kalman"),
+                            engines=("large-diesel",)))
+
+# experiments
+registry.experiment(CLOSED_LOOP)

@@ -1,4 +1,4 @@
-"""The ``testcell`` command: ``up``, ``sim`` and ``replay``."""
+"""The ``testcell`` command: ``up``, ``sim``, ``replay``, ``sweep``, ``tune`` and ``experiment``."""
 
 from __future__ import annotations
 
@@ -11,22 +11,11 @@ import sys
 import threading
 from pathlib import Path
 
-from . import __version__
+from . import __version__, registry
 from .errors import BusError, ConfigError, TestcellError
+from .settings import LOG_LEVELS, Settings, add_sim_options
 
 log = logging.getLogger("testcell")
-
-
-def _positive_float(name: str):
-    def parse(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
-        if not v > 0 or v == float("inf"):
-            raise argparse.ArgumentTypeError(f"{name} must be a positive number, got {text!r}")
-        return v
-    return parse
 
 
 def _port(text: str) -> int:
@@ -39,28 +28,25 @@ def _port(text: str) -> int:
     return v
 
 
-def build_runtime(args: argparse.Namespace, store=None):
-    """The runtime ``up`` and ``replay`` share: the DBC, the rates, the native blocks and the
-    scripts. With ``--script`` only the given scripts run (plus the native blocks with
-    ``--native``); otherwise the native blocks and the shipped (and saved) scripts."""
-    from .estimators.adaptive import adaptive_filters
-    from .controller import controllers
+def build_runtime(settings: Settings, store=None):
+    """The runtime ``up`` and ``replay`` share: the DBC files, the rates, the native blocks
+    of the engine (:data:`cell.registry.BLOCK_SETS`; every engine's when ``settings.engine``
+    is ``None``) and the scripts. With scripts given, only those run (plus the native blocks
+    with ``native``); otherwise the native blocks and the shipped (and saved) scripts."""
     from .dbc import load
-    from .estimators.filters import native_filters
     from .runtime import Rates, Runtime
     from .scripting import ScriptManager
 
-    db = load(tuple(getattr(args, "dbc", None) or ()))
-    rt = Runtime(db, rates=Rates.parse(getattr(args, "cycle", None)))
-    given = getattr(args, "script", None)
-    if not given or getattr(args, "native", False):
-        # controllers start disabled: they keep off the bus until enabled over HTTP
-        pi = [] if getattr(args, "no_controllers", False) else controllers("kalman")
-        for block in [*native_filters(), *adaptive_filters(), *pi]:
-            rt.add_block(block)
+    db = load(settings.dbc)
+    rt = Runtime(db, rates=Rates.parse(settings.cycle))
+    if not settings.scripts or settings.native:
+        for block_set in registry.BLOCK_SETS.values():
+            if block_set.applies_to(settings.engine):
+                for block in block_set.build(settings):
+                    rt.add_block(block)
     scripts = ScriptManager(rt, store)
-    if given:
-        scripts.load_files([Path(p) for p in given])
+    if settings.scripts:
+        scripts.load_files([Path(p) for p in settings.scripts])
     else:
         for problem in scripts.load_defaults():
             log.warning("%s", problem)
@@ -79,11 +65,9 @@ def _check_port_free(host: str, port: int) -> None:
             ) from None
 
 
-def _start_sim_process(args: argparse.Namespace, bus: str) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "cell", "sim", "--bus", bus, "--speed", str(args.speed),
-           "--seed", str(args.seed), "--duty", args.duty]
-    if args.valve is not None:
-        cmd += ["--valve", str(args.valve)]
+def _start_sim_process(settings: Settings, bus: str) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "cell", "--log-level", settings.log_level, "sim",
+           *settings.sim_argv(bus)]
     log.info("starting simulator: %s", " ".join(cmd[2:]))
     return subprocess.Popen(cmd)
 
@@ -103,7 +87,7 @@ def _exit_on_sigterm(signum: int, frame: object) -> None:
     raise SystemExit(0)
 
 
-def cmd_up(args: argparse.Namespace) -> int:
+def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.main import create_app
@@ -113,14 +97,19 @@ def cmd_up(args: argparse.Namespace) -> int:
     from .live import LiveCell
     from .tuning import TuningStore
 
-    spec = resolve(args.bus)
-    _check_port_free(args.host, args.port)
+    from .sim import build as build_sim
+
+    settings = settings.for_simulator()
+    spec = resolve(settings.bus)
+    _check_port_free(settings.host, settings.port)
     # uvicorn re-raises SIGTERM after its own graceful shutdown; turn it into SystemExit so
     # the finally below still stops the simulator and closes the bus
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
-    store = TuningStore(args.state)
+    store = TuningStore(settings.state)
     store.load()
-    runtime, scripts = build_runtime(args, store)
+    runtime, scripts = build_runtime(settings, store)
+    if not settings.no_sim:
+        build_sim(settings, runtime.db)  # refuse a bad engine or frame set before starting
     store.restore(runtime)
     bus = open_bus(spec)
     sim_proc = None
@@ -128,7 +117,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     sim_bus = None
     sim_stop = threading.Event()
     try:
-        if not args.no_sim:
+        if not settings.no_sim:
             if spec.interface == "virtual":
                 # a virtual bus only exists inside this process: run the plant in a thread
                 from . import sim
@@ -136,19 +125,19 @@ def cmd_up(args: argparse.Namespace) -> int:
                 sim_bus = open_bus(spec)
                 sim_thread = threading.Thread(
                     target=sim.run, name="testcell-sim", daemon=True,
-                    kwargs=dict(bus=sim_bus, cycle=args.duty, seed=args.seed, speed=args.speed,
-                                initial_valve=args.valve, stop_event=sim_stop),
+                    kwargs=dict(bus=sim_bus, settings=settings, stop_event=sim_stop,
+                                db=runtime.db),
                 )
                 sim_thread.start()
             else:
-                sim_proc = _start_sim_process(args, str(spec))
+                sim_proc = _start_sim_process(settings, str(spec))
         live = LiveCell(runtime, bus).start()
         cell = Cell(runtime=runtime, bus=str(spec), tuning=store, live=live,
-                    extra={"scripts": scripts})
+                    extra={"scripts": scripts, "settings": settings})
         log.info("testcell %s on %s; API on http://%s:%d (tuning file %s)",
-                 __version__, spec, args.host, args.port, store.path)
-        uvicorn.run(create_app(cell), host=args.host, port=args.port,
-                    log_level=args.log_level.lower())
+                 __version__, spec, settings.host, settings.port, store.path)
+        uvicorn.run(create_app(cell), host=settings.host, port=settings.port,
+                    log_level=settings.log_level.lower())
         live.stop()
     finally:
         sim_stop.set()
@@ -162,13 +151,13 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 # -- replay ------------------------------------------------------------------------------
-def cmd_replay(args: argparse.Namespace) -> int:
+def cmd_replay(settings: Settings, args: argparse.Namespace) -> int:
     from .replay import replay
     from .tables import WRITERS, plot_channels
 
     if Path(args.out).suffix.lower() not in WRITERS:
         raise ConfigError(f"--out {args.out}: unknown table format; use one of {', '.join(WRITERS)}")
-    runtime, _ = build_runtime(args)
+    runtime, _ = build_runtime(settings)
     channels = [c.strip() for c in args.channels.split(",") if c.strip()] if args.channels else None
     result = replay(runtime, args.log, args.out, channels=channels,
                     progress=False if args.quiet else None)
@@ -188,16 +177,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
 PLOT_DEFAULT = ["EXH_BP_R", "EXH_BP_R_TRUE", "EXH_BP_R_MAF", "EXH_BP_R_Kalman"]
 
 
-def cmd_experiment(args: argparse.Namespace) -> int:
-    from .experiments import closed_loop as experiment
-
-    return experiment.main(args)
-
-
-def cmd_sim(args: argparse.Namespace) -> int:
+def cmd_sim(settings: Settings, args: argparse.Namespace) -> int:
     from . import sim
 
-    return sim.main(args)
+    return sim.main(args, settings)
+
+
+def _with_args_only(main):
+    """A command that takes only its parsed options (sweep, tune, experiment)."""
+    return lambda settings, args: main(args)
 
 
 # -- parser ------------------------------------------------------------------------------
@@ -206,31 +194,26 @@ def _common_runtime_options(p: argparse.ArgumentParser) -> None:
                    help="task rates in Hz: a number sets MED (default 10); or name any of "
                         "FAS/MED/SLO (defaults 50/10/1)")
     p.add_argument("--dbc", action="append", default=None, metavar="PATH",
-                   help="add a DBC file, or a folder of .dbc files, to the cell's own (its "
-                        "frames decode into channels); repeat for more")
+                   help="add a DBC file, or a folder of them, to the cell's own dbc/*.dbc "
+                        "(repeatable): your ECU and DAQ frames decode into channels")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``testcell`` parser, with every registered engine's options and every experiment."""
     parser = argparse.ArgumentParser(prog="testcell", description=__doc__)
     parser.add_argument("--version", action="version", version=f"testcell {__version__}")
-    parser.add_argument("--log-level", default="INFO",
-                        choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    parser.add_argument("--log-level", default=None,
+                        choices=LOG_LEVELS)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     up = sub.add_parser("up", help="start the simulator and the runtime with its HTTP API")
     up.add_argument("--bus", default=None,
                     help="auto (default), virtual, udp_multicast, socketcan or INTERFACE:CHANNEL; "
                          "CAN_INTERFACE/CAN_CHANNEL are honoured")
-    up.add_argument("--host", default="127.0.0.1")
-    up.add_argument("--port", type=_port, default=8000)
+    up.add_argument("--host", default=None, help="API address (default 127.0.0.1)")
+    up.add_argument("--port", type=_port, default=None, help="API port (default 8000)")
     up.add_argument("--no-sim", action="store_true", help="attach to an existing bus, no simulator")
-    up.add_argument("--speed", type=_positive_float("--speed"), default=1.0,
-                    help="run the simulator N times faster than real time")
-    up.add_argument("--seed", type=int, default=0, help="simulator noise seed")
-    up.add_argument("--duty", default="rated", choices=["rated", "warmup", "transient"],
-                    help="simulator duty cycle")
-    up.add_argument("--valve", type=float, default=None,
-                    help="simulator valve opening %% until a demand arrives")
+    add_sim_options(up)
     up.add_argument("--no-controllers", action="store_true",
                     help="no native PI controllers (e.g. to drive the valve from a script)")
     up.add_argument("--state", default=None, type=Path,
@@ -238,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
     _common_runtime_options(up)
     up.set_defaults(func=cmd_up)
 
-    sim = sub.add_parser("sim", help="run the plant simulator on the bus (or write a log)")
+    sim = sub.add_parser("sim", help="run an engine's plant simulator on the bus (or write a log)")
     from . import sim as sim_module
 
     sim_module.add_arguments(sim)
@@ -251,45 +234,53 @@ def build_parser() -> argparse.ArgumentParser:
                          "column per channel")
     rp.add_argument("--plot", default=None, metavar="PNG", help="also plot the channels to a PNG")
     rp.add_argument("--channels", default=None, help="comma-separated channels to write")
-    rp.add_argument("--script", action="append", metavar="FILE",
+    rp.add_argument("--engine", default=None, metavar="NAME",
+                    help="run only this engine's native blocks (default: every engine's; the "
+                         "channels that get values are written)")
+    rp.add_argument("--script", action="append", dest="scripts", metavar="FILE",
                     help="run exactly this script (.fdv, .labels with its .ravg, .ravg); repeat "
                          "for more. Without --script, replay runs what testcell up runs")
     rp.add_argument("--native", action="store_true",
-                    help="with --script: also run the native filters and controllers")
+                    help="with --script: also run the native filters, observers and controllers")
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
     _common_runtime_options(rp)
     rp.set_defaults(func=cmd_replay)
+
     from .analysis import autotune as tune_module
     from .analysis import sweep as sweep_module
 
     sp = sub.add_parser("sweep", help="Kalman Q/R sweep over a CAN log (seed 004, Tables 1-2)")
     sweep_module.add_arguments(sp)
-    sp.set_defaults(func=sweep_module.main)
+    sp.set_defaults(func=_with_args_only(sweep_module.main))
     tp = sub.add_parser("tune", help="estimate Kalman Q and R from a CAN log, no truth needed")
     tune_module.add_arguments(tp)
-    tp.set_defaults(func=tune_module.main)
+    tp.set_defaults(func=_with_args_only(tune_module.main))
 
-    ex = sub.add_parser("experiment", help="run an experiment: closed-loop (seed 004, Figure 10)")
-    from .experiments import closed_loop as experiment_module
+    from . import experiments
 
-    experiment_module.add_arguments(ex)
-    ex.set_defaults(func=cmd_experiment)
+    ex = sub.add_parser("experiment", help="run an experiment (--list shows them)")
+    experiments.add_arguments(ex)
+    ex.set_defaults(func=_with_args_only(experiments.main))
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    command = "testcell"
     try:
-        return args.func(args)
+        registry.load_plugins()  # engines, blocks and experiments shape the parser
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        command = f"testcell {args.command}"
+        settings = Settings.from_args(args)
+        logging.basicConfig(level=settings.log_level,
+                            format="%(asctime)s %(name)s %(levelname)s %(message)s")
+        return args.func(settings, args)
     except (BusError, ConfigError) as exc:
-        print(f"testcell {args.command}: {exc}", file=sys.stderr)
+        print(f"{command}: {exc}", file=sys.stderr)
         return 2
     except TestcellError as exc:
         report = exc.report() if hasattr(exc, "report") else str(exc)  # every script error
-        print("\n".join(f"testcell {args.command}: {line}" for line in report.splitlines()),
-              file=sys.stderr)
+        print("\n".join(f"{command}: {line}" for line in report.splitlines()), file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from . import registry
 from .live import LiveCell
 from .runtime import Runtime
 from .tuning import TuningStore
@@ -29,7 +30,7 @@ class Cell:
             params = block.set_params(changes)
             if self.tuning is not None:
                 try:
-                    self.tuning.record(f"{family}s", name, params)
+                    self.tuning.record(registry.FAMILIES[family].section, name, params)
                 except Exception:
                     block.set_params(before)
                     raise

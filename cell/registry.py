@@ -37,7 +37,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
     from .blocks import Block
     from .plant.composition import Composition
-    from .settings import Settings
+    from .settings import Option, Settings
 
 log = logging.getLogger(__name__)
 
@@ -65,13 +65,16 @@ class EngineProfile:
     """An engine the simulator can run: a composition of plants and its duty cycles.
 
     ``build(settings)`` returns the :class:`~cell.plant.composition.Composition`;
-    ``duties`` names the duty cycles ``--duty`` accepts, the first being the default.
+    ``duties`` names the duty cycles ``--duty`` accepts, the first being the default;
+    ``options`` are the simulator options that only this engine takes.
     """
 
     name: str
     description: str
     build: Callable[[Settings], Composition]
     duties: tuple[str, ...] = ()
+    options: tuple[Option, ...] = ()
+    """Simulator options of this engine only (``--valve``, ``--bp-limit``, ...)."""
 
     @property
     def default_duty(self) -> str | None:
@@ -88,6 +91,7 @@ def engine(profile: EngineProfile) -> EngineProfile:
 
 
 def engine_profile(name: str) -> EngineProfile:
+    ensure_loaded()
     try:
         return ENGINES[name]
     except KeyError:
@@ -118,6 +122,7 @@ def family(fam: BlockFamily) -> BlockFamily:
 
 
 def family_of_section(section: str) -> BlockFamily | None:
+    ensure_loaded()
     return next((f for f in FAMILIES.values() if f.section == section), None)
 
 
@@ -184,6 +189,13 @@ def _register(table: dict[str, Any], what: str, name: str, item: Any) -> Any:
 
 
 _loaded = False
+_plugin_names: set[str] = set()
+
+
+def ensure_loaded() -> None:
+    """Load the cell's own parts and the plugins unless that has been done."""
+    if not _loaded:
+        load_plugins()
 
 
 def load_plugins(extra: Sequence[str] = ()) -> list[str]:
@@ -207,8 +219,11 @@ def load_plugins(extra: Sequence[str] = ()) -> list[str]:
             loaded.append(ep.name)
         _loaded = True
     for name in names:
+        if name in _plugin_names:
+            continue
         try:
             importlib.import_module(name)
+            _plugin_names.add(name)
         except Exception as exc:
             raise ConfigError(f"{PLUGINS_ENV}: plugin module {name!r} failed to load: "
                               f"{type(exc).__name__}: {exc}") from exc

@@ -12,6 +12,7 @@ import can
 from tqdm import tqdm
 
 from .errors import ConfigError, LogFormatError
+from .lockstep import feed
 from .runtime import Runtime
 from .tables import write_table
 
@@ -116,25 +117,8 @@ def replay(
             row[name] = ch.value if status == "ok" else None
         snapshots.append((t, row))
 
-    runtime.tick_listeners.append(on_tick)
-    last_ts = None
-    try:
-        def counted():
-            nonlocal last_ts
-            for msg in read_log(log, progress=progress):
-                last_ts = msg.timestamp if last_ts is None else max(last_ts, msg.timestamp)
-                result.frames += 1
-                yield msg
-
-        runtime.ingest_many(counted())
-    except LogFormatError as exc:
-        result.error = exc
-    finally:
-        runtime.tick_listeners.remove(on_tick)
-    if last_ts is not None:
-        runtime.tick_listeners.append(on_tick)
-        runtime.advance(last_ts)
-        runtime.tick_listeners.remove(on_tick)
+    result.error = feed(runtime, read_log(log, progress=progress), on_tick).error
+    result.frames = runtime.frames
 
     seen = {name for _, row in snapshots for name, v in row.items() if v is not None}
     if channels:

@@ -136,8 +136,9 @@ class Runtime:
             for out in block.outputs:
                 self.producer[out] = block.name
                 unit = self.db.signals[out].unit if out in self.db.signals else ""
-                if not unit and block.family == "filter" and len(block.inputs) == 1:
-                    src = self.db.signals.get(block.inputs[0])
+                unit = unit or getattr(block, "units", {}).get(out, "")
+                if not unit and block.keeps_input_unit and len(block.inputs) == 1:
+                    src = self.db.signals.get(block.inputs[0]) or self._channels.get(block.inputs[0])
                     unit = src.unit if src else ""  # a filter keeps its input's unit
                 ch = self._channel(out, source=block.name)
                 ch.unit = ch.unit or unit

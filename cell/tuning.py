@@ -72,17 +72,26 @@ class TuningStore:
         self.data = data
         return self.data
 
-    def restore(self, runtime: Runtime, sections: tuple[str, ...] = ("filters", "controllers",
-                                                                     "observers")) -> list[str]:
-        """Apply saved parameters to the runtime's blocks; returns what was skipped and why."""
+    def restore(self, runtime: Runtime) -> list[str]:
+        """Apply saved parameters to the runtime's blocks; returns what was skipped and why.
+
+        Every section of the file that is a block family's (:data:`cell.registry.FAMILIES`)
+        is restored; other sections belong to their own owners (``scripts``) and are kept.
+        """
+        from . import registry
+
+        registry.load_plugins()
         skipped = []
-        for section in sections:
-            for name, params in list(self.data.get(section, {}).items()):
+        for section, entries in self.data.items():
+            fam = registry.family_of_section(section)
+            if fam is None:
+                continue
+            for name, params in list(entries.items()):
                 block = runtime.blocks.get(name)
                 volatile = getattr(block, "VOLATILE", ())
                 params = {k: v for k, v in params.items() if k not in volatile}
                 try:
-                    runtime.set_params(name, params, family=section[:-1])
+                    runtime.set_params(name, params, family=fam.name)
                 except (UnknownBlockError, ParamError) as exc:
                     skipped.append(f"{section}/{name}: {exc}")
                     log.warning("tuning file %s: not restoring %s/%s: %s", self.path, section,

@@ -71,6 +71,7 @@ class AdaptiveFilter(Block):
 
     kind = "adaptive"
     family = "filter"
+    keeps_input_unit = True
     PARAMS: ClassVar[dict[str, Param]] = {
         "samples": Param("samples", int, "steady-state window, samples", ge=1, le=36_000),
         "gain_fast": Param("gain_fast", float, "gain after a detected change", gt=0.0, le=1.0),

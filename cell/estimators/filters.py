@@ -23,6 +23,7 @@ class MovingAverage(Block):
 
     kind = "moving_average"
     family = "filter"
+    keeps_input_unit = True
     PARAMS = {
         "samples": Param("samples", int, "window length M in samples", ge=1, le=MAX_SAMPLES),
     }
@@ -62,6 +63,7 @@ class ScalarKalman(Block):
 
     kind = "kalman"
     family = "filter"
+    keeps_input_unit = True
     PARAMS = {
         "Q": Param("Q", float, "process noise covariance", gt=0.0),
         "R": Param("R", float, "measurement noise covariance", gt=0.0),

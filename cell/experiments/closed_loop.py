@@ -10,16 +10,16 @@ work"), and measures rather than asserts the Kalman filter's advantage.
 
 Lockstep
 --------
-The :class:`~cell.plant.Plant` and a :class:`~cell.runtime.Runtime` run in one process with
-no bus: at every plant step the plant's frames (stamped with simulation time, which is the
-bus time) go to :meth:`Runtime.ingest`, the runtime :meth:`~Runtime.advance`\\ s to that time,
-and the ``VALVE_DEMAND`` frames in its outbox go back to the plant through
-:func:`cell.sim.apply_demand`, before :meth:`Plant.step`. Only CAN frames pass between the
-two, as on the live bus. Because every block here ticks at ``MED`` (10 Hz) and every SIM
-message's cycle time divides 0.1 s, the frames of the steps between two ticks are
-overwritten before any tick reads them; by default only the steps on the tick grid are
-encoded (``stride``), which gives the same numbers ten times faster (a test checks this
-against ``stride=1``).
+The engine (:func:`cell.plant.large_diesel`) and a :class:`~cell.runtime.Runtime` run in one
+process with no bus, through the one lockstep loop (:class:`cell.lockstep.Lockstep`): at
+every plant step the simulator's frames (stamped with simulation time, which is the bus
+time) go to the runtime, the runtime runs its ticks up to that time, and the
+``VALVE_DEMAND`` frames in its outbox go back to the simulator, before the plants step.
+Only CAN frames pass between the two, as on the live bus. Because every block here ticks at
+``MED`` (10 Hz) and every SIM message's cycle time divides 0.1 s, the frames of the steps
+between two ticks are overwritten before any tick reads them; by default only the steps on
+the tick grid are exchanged (``stride``), which gives the same numbers ten times faster (a
+test checks this against ``stride=1``).
 
 Start at rated
 --------------
@@ -64,9 +64,11 @@ from ..controller import DEFAULT_KI, DEFAULT_KP, FEEDBACK, controllers
 from ..dbc import CellDatabase
 from ..errors import ConfigError
 from ..estimators.filters import native_filters
-from ..plant import BANKS, TRIPPED, DutyCycle, Plant, PlantParams
+from .. import registry
+from ..lockstep import Lockstep
+from ..plant import BANKS, TRIPPED, DutyCycle, EngineParams, ExhaustParams, large_diesel
 from ..runtime import Runtime
-from ..sim import apply_demand
+from ..sim.simulator import Simulator
 
 FEEDBACKS = tuple(FEEDBACK)  # raw, maf, kalman, adaptive
 SETPOINT = 680.0
@@ -123,7 +125,7 @@ class Summary:
         return asdict(self)
 
 
-def rated_hold(params: PlantParams, duration: float) -> DutyCycle:
+def rated_hold(params: EngineParams, duration: float) -> DutyCycle:
     """A duty cycle holding rated speed and full load from t = 0 (the plant starts there)."""
     return DutyCycle("rated-hold", [(0.0, params.rated_speed, 1.0)], duration)
 
@@ -152,7 +154,8 @@ def closed_loop(
     duration: float = 300.0,
     t_enable: float = 20.0,
     setpoint: float = SETPOINT,
-    params: PlantParams | None = None,
+    engine: EngineParams | None = None,
+    exhaust: ExhaustParams | None = None,
     db: CellDatabase | None = None,
     stride: int | None = None,
     trace: bool = False,
@@ -173,8 +176,8 @@ def closed_loop(
         Closed-loop time after the switch, s.
     t_enable:
         Open-loop time at rated, valve fully open, before the switch, s.
-    params:
-        Plant constants (default :class:`PlantParams`).
+    engine, exhaust:
+        Plant constants (default :class:`EngineParams`, :class:`ExhaustParams`).
     stride:
         Plant steps between the frames given to the runtime; default: one MED tick (exact,
         see the module notes). ``1`` feeds every frame.
@@ -191,53 +194,51 @@ def closed_loop(
         raise ConfigError(f"--feedback {feedback!r} is not a feedback; choose from "
                           f"{', '.join(FEEDBACKS)}")
     db = db or dbc_mod.load()
-    params = params or PlantParams()
+    engine = engine or EngineParams()
     kp = DEFAULT_KP if kp is None else kp
     ki = DEFAULT_KI if ki is None else ki
     total = t_enable + duration
-    plant = Plant(rated_hold(params, total), seed=seed, params=params, initial_valve=100.0)
+    sim = Simulator(large_diesel(rated_hold(engine, total), seed, initial_valve=100.0,
+                                 engine=engine, exhaust=exhaust), db)
+    banks = sim.plant.plant("exhaust")
     ctrls = controllers(feedback, kp=kp, ki=ki, setpoint=setpoint, enable=False,
                         **(controller_settings or {}))
     rt = Runtime(db, [*native_filters(), *adaptive_filters(), *ctrls], history_s=1.0)
-    med_steps = max(1, round(rt.rates.period("MED") / plant.dt))
-    if stride is None:
-        stride = med_steps
-    n_total = round(total / plant.dt)
-    k_enable = round(t_enable / plant.dt)
+    med_steps = max(1, round(rt.rates.period("MED") / sim.dt))
+    n_total = round(total / sim.dt)
+    k_enable = round(t_enable / sim.dt)
     rec_t: list[float] = []
     rec: dict[str, list[float]] = {f"bp_{b}": [] for b in BANKS}
     rec.update({f"demand_{b}": [] for b in BANKS})
     rec["fuel"] = []
     demand_ch = [rt.channels[c.output] for c in ctrls]
     fuel_ch = None
-    trip_time = None
-    for k in range(n_total):
-        if k == k_enable:
-            for c in ctrls:
-                rt.set_params(c.name, {"enable": True}, family="controller")
-        if k % stride == 0:
-            for msg in plant.frames(db):
-                rt.ingest(msg)
-            rt.advance(plant.t)
-            for msg in rt.take_outbox():
-                apply_demand(plant, db, msg)
+
+    def enable() -> None:
+        for c in ctrls:
+            rt.set_params(c.name, {"enable": True}, family="controller")
+
+    if k_enable == 0:
+        enable()
+    for k, _ in Lockstep(sim, rt, stride=stride or med_steps).steps(n_total):
+        if banks.state == TRIPPED:
+            break
+        if k == k_enable - 1:
+            enable()  # before the exchange of step k_enable: no tick runs in between
         if k >= k_enable and k % med_steps == 0:
             if fuel_ch is None:
                 fuel_ch = rt.channels.get("FUEL_RATE")
-            rec_t.append(plant.t - t_enable)
+            rec_t.append(sim.t - t_enable)
             for b, ch in zip(BANKS, demand_ch, strict=True):
-                rec[f"bp_{b}"].append(plant.truth[b])
+                rec[f"bp_{b}"].append(banks.truth[b])
                 rec[f"demand_{b}"].append(ch.value if ch.value is not None else math.nan)
             rec["fuel"].append(fuel_ch.value if fuel_ch and fuel_ch.value is not None else 0.0)
-        plant.step()
-        if plant.state == TRIPPED:
-            trip_time = plant.trip_time - t_enable
-            break
+    trip_time = None if banks.trip_time is None else banks.trip_time - t_enable
     t = np.asarray(rec_t)
     bp = {b: np.asarray(rec[f"bp_{b}"]) for b in BANKS}
     settle_each = [_settling(t, bp[b], setpoint, BAND, HOLD_S) for b in BANKS]
     settling = None if trip_time is not None or None in settle_each else max(settle_each)
-    dt_rec = med_steps * plant.dt
+    dt_rec = med_steps * sim.dt
     over = max(float(np.max(bp[b], initial=-math.inf)) for b in BANKS)
     overshoot = max(0.0, (over - setpoint) / setpoint * 100.0)
     iae = float(np.mean([np.sum(np.abs(bp[b] - setpoint)) * dt_rec for b in BANKS]))
@@ -489,12 +490,8 @@ def plot_gain_map(path: Path, grids: dict[str, dict[tuple[float, float], Summary
 
 
 # -- command line -----------------------------------------------------------------------------
-EXPERIMENTS = ("closed-loop",)
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the ``testcell experiment`` arguments to ``parser``."""
-    parser.add_argument("name", metavar="NAME", help="experiment: closed-loop")
+    """Add the ``testcell experiment closed-loop`` options to ``parser``."""
     parser.add_argument("--feedback", default=",".join(FEEDBACKS),
                         help="comma-separated feedbacks from raw,maf,kalman,adaptive "
                              "(default: all four)")
@@ -537,10 +534,6 @@ def _float_list(option: str, text: str) -> list[float]:
 
 def check_arguments(args: argparse.Namespace) -> dict[str, Any]:
     """Validate ``testcell experiment`` options; :class:`ConfigError` names the option."""
-    name = getattr(args, "name", "closed-loop")
-    if name not in EXPERIMENTS:
-        raise ConfigError(f"experiment {name!r} is unknown; choose one of: "
-                          f"{', '.join(EXPERIMENTS)}")
     feedbacks = [f.strip() for f in str(args.feedback).split(",") if f.strip()]
     if not feedbacks:
         raise ConfigError("--feedback names no feedback; choose from " + ",".join(FEEDBACKS))
@@ -624,3 +617,14 @@ def main(args: argparse.Namespace) -> int:
         for s in summaries:
             print(json.dumps(s.as_json()))
     return 0
+
+
+CLOSED_LOOP = registry.Experiment(
+    name="closed-loop",
+    help="PI back-pressure loop to 680 mmH2O with raw, moving-average, Kalman and adaptive "
+         "feedback",
+    add_arguments=add_arguments,
+    run=main,
+    seed="seed 004, Figure 10",
+    description=__doc__.split("\n\n")[0],
+)

@@ -1,18 +1,22 @@
-"""One router shape for every tunable block family: filters, controllers, observers."""
+"""One router shape for every tunable block family (filters, controllers, observers, ...)."""
 
 from typing import Any
 
 from fastapi import APIRouter, Body
 
+from cell.registry import BlockFamily
+
 from ..deps import CellDep
 from ..schemas import BlockOut
 
 
-def block_router(family: str, prefix: str, examples: list[dict[str, Any]]) -> APIRouter:
-    """``GET {prefix}``, ``GET {prefix}/{name}`` and ``PATCH {prefix}/{name}`` for ``family``."""
-    router = APIRouter(prefix=prefix, tags=[prefix.strip("/")])
+def block_router(fam: BlockFamily) -> APIRouter:
+    """``GET /{section}``, ``GET /{section}/{name}`` and ``PATCH /{section}/{name}``."""
+    family, prefix = fam.name, f"/{fam.section}"
+    router = APIRouter(prefix=prefix, tags=[fam.section])
 
-    @router.get("", response_model=list[BlockOut], name=f"list {family}s")
+    @router.get("", response_model=list[BlockOut], name=f"list {family}s",
+                description=f"Every {family} of the cell ({fam.description}).")
     def list_blocks(cell: CellDep) -> list[BlockOut]:
         rt = cell.runtime
         with rt.lock:
@@ -25,7 +29,7 @@ def block_router(family: str, prefix: str, examples: list[dict[str, Any]]) -> AP
 
     @router.patch("/{name}", response_model=BlockOut, name=f"tune {family}")
     def patch_block(name: str, cell: CellDep,
-                    changes: dict[str, Any] = Body(..., examples=examples)) -> BlockOut:
+                    changes: dict[str, Any] = Body(..., examples=list(fam.examples))) -> BlockOut:
         """Change parameters; validated as a whole, effective at the next tick, saved."""
         cell.tune(family, name, changes)
         with cell.runtime.lock:

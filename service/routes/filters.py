@@ -7,16 +7,13 @@ input alone and applies them only when asked.
 
 from typing import Annotated, Any, Literal
 
-from fastapi import HTTPException
+from fastapi import APIRouter, HTTPException
 from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
 from cell.analysis.autotune import autotune
 from cell.errors import ConfigError
 
 from ..deps import CellDep
-from .blocks import block_router
-
-router = block_router("filter", "/filters", [{"Q": 4e-6, "R": 1e-4}, {"samples": 30}])
 
 
 class AutotuneIn(BaseModel):
@@ -27,7 +24,11 @@ class AutotuneIn(BaseModel):
     apply: StrictBool = False
 
 
-@router.post("/{name}/autotune", name="autotune filter")
+def add_routes(router: APIRouter) -> None:
+    """The filter family's own routes, added to its block router."""
+    router.post("/{name}/autotune", name="autotune filter")(autotune_filter)
+
+
 def autotune_filter(name: str, cell: CellDep, body: AutotuneIn | None = None) -> dict[str, Any]:
     """Estimate Q and R from the last ``minutes`` of the filter's input (no truth needed):
     maximum likelihood on the innovations, with a confidence interval. Applied (and saved)

@@ -11,7 +11,7 @@ import pytest
 from cell.analysis import sweep as sw
 from cell.errors import ConfigError, LogFormatError
 from cell.estimators.filters import MovingAverage, ScalarKalman, native_filters
-from cell.plant import simulate
+from cell.sim import simulate
 from cell.runtime import Runtime
 from cell.sim import write_log
 

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from cell.plant import simulate
+from cell.sim import simulate
 from cell.runtime import Runtime
 
 

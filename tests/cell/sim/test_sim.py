@@ -15,6 +15,7 @@ from cell import sim
 from cell.bus import open_bus
 from cell.dbc import load
 from cell.errors import ConfigError
+from cell.settings import Settings
 
 DB = load()
 SIM_MESSAGES = {m.name: m for m in DB.db.messages if "SIM" in m.senders}
@@ -30,6 +31,10 @@ def channel() -> str:
     return f"virtual:testcell-sim-{uuid.uuid4().hex[:8]}"
 
 
+def settings(**given) -> Settings:
+    return Settings.build(given, environ={})
+
+
 def demand_frame(left: float, right: float) -> can.Message:
     return DB.encode("VALVE_DEMAND", {"VALVE_DEMAND_L": left, "VALVE_DEMAND_R": right})
 
@@ -42,7 +47,7 @@ def test_run_sends_frames_and_obeys_valve_demand(channel):
         peer.send(can.Message(arbitration_id=0x7FF, data=b"\x01", is_extended_id=False))
         peer.send(can.Message(arbitration_id=0x200, data=b"\x01\x02", is_extended_id=False))
         peer.send(demand_frame(100.0, 40.0))
-        plant = sim.run(sim_bus, "rated", seed=0, speed=20, duration=1.0, db=DB)
+        plant = sim.run(sim_bus, settings(duty="rated", seed=0, speed=20, duration=1.0), db=DB)
     finally:
         sim_bus.shutdown()
     received = []
@@ -62,7 +67,7 @@ def test_run_sends_frames_and_obeys_valve_demand(channel):
     assert left[0] == pytest.approx(40.0)
     assert left[-1] > left[0] + 3.0  # 5 %/s towards 100 for ~1 s
     assert right == pytest.approx([40.0] * len(right))  # demand 40 is inside the dead-band
-    assert plant.valves["L"].demand == pytest.approx(100.0)
+    assert plant.plant("exhaust").valves["L"].demand == pytest.approx(100.0)
     # paced: one simulated second at speed 20 takes at least ~1/20 s of wall time
     stamps = [m.timestamp for m in received]
     assert max(stamps) - min(stamps) >= 0.9 * (1.0 - 0.01) / 20
@@ -74,7 +79,8 @@ def test_run_stops_on_the_stop_event(channel):
     result = {}
 
     def target():
-        result["plant"] = sim.run(sim_bus, "transient", seed=1, speed=10, stop_event=stop, db=DB)
+        result["plant"] = sim.run(sim_bus, settings(duty="transient", seed=1, speed=10),
+                                  stop_event=stop, db=DB)
 
     thread = threading.Thread(target=target)
     thread.start()
@@ -92,10 +98,10 @@ def test_run_logs_start_and_trip(channel, caplog):
     sim_bus = open_bus(channel)
     try:
         with caplog.at_level("INFO", logger="cell.sim"):
-            plant = sim.run(sim_bus, "rated", speed=50, duration=0.5, bp_limit=5.0, db=DB)
+            plant = sim.run(sim_bus, settings(speed=50, duration=0.5, bp_limit=5.0), db=DB)
     finally:
         sim_bus.shutdown()
-    assert plant.state == 2  # idle back-pressure (~8 mmH2O) is above a 5 mmH2O limit
+    assert plant["ENGINE_STATE"] == 2  # idle back-pressure (~8 mmH2O) is above a 5 mmH2O limit
     text = caplog.text
     assert "sim started" in text and "tripped" in text
 
@@ -111,7 +117,7 @@ def test_write_log_round_trips_through_python_can(tmp_path):
     names = {DB.decode(m)[0].name for m in frames}
     assert names == set(SIM_MESSAGES)
     # the log is the lockstep source written out: same frames as simulate()
-    from cell.plant import simulate
+    from cell.sim import simulate
 
     expected = [bytes(m.data) for m in simulate(DB, "rated", 2, 2.0, t0=10.0)]
     assert [bytes(m.data) for m in frames] == expected

@@ -1,0 +1,138 @@
+"""The one loop: frames, then ticks, on bus time, with or without a simulator and a runtime.
+
+Everything that runs the cell faster than real time goes through here: writing a log
+(simulator alone), replaying one (runtime alone), extracting a channel's series, running an
+experiment (simulator and runtime in closed loop), and the tests.
+
+- :class:`Lockstep` steps a :class:`~cell.sim.simulator.Simulator` and, if given, a
+  :class:`~cell.runtime.Runtime`: at every plant step the frames due go to the runtime
+  (stamped with simulation time, which is the bus time), the runtime runs the ticks due up
+  to that time, and the frames in its outbox (demands) go back to the simulator, before the
+  plants step. Only CAN frames pass between the two, as on the live bus.
+- :func:`feed` runs a runtime over frames that already exist (a log), calling ``on_tick``
+  at every MED tick and finishing the ticks due at the last frame's time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import nullcontext
+from dataclasses import dataclass
+
+import can
+
+from .errors import LogFormatError
+from .runtime import Runtime
+from .sim.simulator import Simulator
+
+TickListener = Callable[[float], None]
+
+
+class _Listening:
+    """Context: ``on_tick`` listens to the runtime's MED ticks while inside."""
+
+    def __init__(self, runtime: Runtime, on_tick: TickListener | None) -> None:
+        self.runtime, self.on_tick = runtime, on_tick
+
+    def __enter__(self) -> None:
+        if self.on_tick is not None:
+            self.runtime.tick_listeners.append(self.on_tick)
+
+    def __exit__(self, *exc: object) -> None:
+        if self.on_tick is not None:
+            self.runtime.tick_listeners.remove(self.on_tick)
+
+
+class Lockstep:
+    """A simulator and (optionally) a runtime stepped together on one bus-time axis.
+
+    Parameters
+    ----------
+    sim:
+        The simulator.
+    runtime:
+        The runtime, or ``None`` to run the simulator alone (writing a log).
+    stride:
+        Plant steps between the exchanges with the runtime (default 1, every step). When
+        every block ticks at a rate whose period is a multiple of ``stride`` steps, and every
+        message's cycle time divides it, the frames of the steps in between are overwritten
+        before any tick reads them, so a stride of one tick gives the same numbers faster.
+    on_tick:
+        Called with the bus time at every MED tick of the runtime.
+    """
+
+    def __init__(self, sim: Simulator, runtime: Runtime | None = None, *, stride: int = 1,
+                 on_tick: TickListener | None = None) -> None:
+        if stride < 1:
+            raise ValueError(f"stride must be >= 1, got {stride}")
+        self.sim = sim
+        self.runtime = runtime
+        self.stride = stride
+        self.on_tick = on_tick
+
+    def steps(self, n: int, frames: bool = False) -> Iterator[tuple[int, list[can.Message]]]:
+        """Run ``n`` plant steps; yield ``(k, frames)`` after each exchange, before the step.
+
+        ``frames`` are those of step ``k`` (always encoded when ``frames`` is true, else only
+        on exchange steps). Code in the loop body sees the runtime's channels at time
+        ``t_k`` and may act on the simulator (or stop the run with ``break``) before the
+        plants advance.
+        """
+        sim, rt = self.sim, self.runtime
+        with _Listening(rt, self.on_tick) if rt is not None else nullcontext():
+            for _ in range(n):
+                k = sim.k
+                exchange = rt is not None and k % self.stride == 0
+                out = sim.frames() if (frames or exchange) else []
+                if exchange:
+                    rt.ingest_many(out)
+                    rt.advance(sim.t0 + sim.t)
+                    for msg in rt.take_outbox():
+                        sim.receive(msg)
+                yield k, out
+                sim.step()
+
+    def frames(self, n: int) -> Iterator[can.Message]:
+        """The frames of ``n`` plant steps, in time order."""
+        for _, out in self.steps(n, frames=True):
+            yield from out
+
+    def run(self, duration: float) -> None:
+        """Run for ``duration`` seconds of simulation time."""
+        for _ in self.steps(round(duration / self.sim.dt)):
+            pass
+
+
+@dataclass
+class Fed:
+    """What :func:`feed` did: frames applied, the last frame's time, where a log broke."""
+
+    frames: int = 0
+    last_time: float | None = None
+    error: LogFormatError | None = None
+
+
+def feed(runtime: Runtime, frames: Iterable[can.Message], on_tick: TickListener | None = None
+         ) -> Fed:
+    """Run ``runtime`` over ``frames`` (a log), then the ticks due at the last frame's time.
+
+    A malformed log line (:class:`LogFormatError` from the frame iterator) stops the frames;
+    the ticks up to the last good frame still run, and the error is returned in the result.
+    """
+    fed = Fed()
+
+    def counted() -> Iterator[can.Message]:
+        for msg in frames:
+            ts = msg.timestamp
+            fed.last_time = ts if fed.last_time is None else max(fed.last_time, ts)
+            fed.frames += 1
+            yield msg
+
+    with _Listening(runtime, on_tick):
+        try:
+            runtime.ingest_many(counted())
+        except LogFormatError as exc:
+            fed.error = exc
+        if fed.last_time is not None:
+            runtime.advance(fed.last_time)
+    return fed

@@ -36,3 +36,23 @@ def test_truth_scores_of_known_signals():
     assert sc["rmse"][1] == pytest.approx(np.sqrt((7 * 300**2 + 7 * 150**2) / 600))
     steps = scores.find_steps(series.t, truth, scores.steady_mask(truth, rate))
     assert [(s.before, s.after) for s in steps] == [(100.0, 400.0), (400.0, 250.0)]
+
+
+def test_truth_scores_take_plain_arrays_in_any_units():
+    """Any estimate against its truth, e.g. an observer's state in its own units, with
+    thresholds to match; the back-pressure defaults (mmH2O) see no step in it."""
+    rate = 10.0
+    truth = np.r_[np.full(200, 0.1), np.full(200, 0.4), np.full(200, 0.25)]
+    delayed = np.r_[np.full(7, 0.1), truth[:-7]]  # truth 0.7 s late
+    sc = scores.truth_scores(delayed, truth, rate, steady_tol=2e-3, step_min=0.05)
+    assert sc["lag_s"][0] == pytest.approx(0.7)
+    assert sc["max_err"][0] == pytest.approx(0.3)
+    assert sc["ss_std"][0] == pytest.approx(0.0, abs=1e-12)
+    assert np.isnan(scores.truth_scores(delayed, truth, rate)["lag_s"][0])
+    # plain arrays and a Series give the same numbers (times from the rate)
+    plain = scores.truth_scores(delayed * 1000, truth * 1000, rate)
+    series = Series.from_arrays(truth * 1000, truth * 1000, rate)
+    via_series = scores.score_estimates(series, delayed * 1000)
+    for key in scores.TRUTH_KEYS:
+        np.testing.assert_array_equal(plain[key], via_series[key])
+    assert plain["lag_s"][0] == pytest.approx(0.7)

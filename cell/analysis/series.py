@@ -208,7 +208,8 @@ def add_log_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--cycle", default=None, metavar="HZ|FAS=..,MED=..,SLO=..",
                         help="task rates; samples are taken at MED (default 10 Hz)")
-    parser.add_argument("--dbc", default=None, help="DBC file (default: the cell's)")
+    parser.add_argument("--dbc", action="append", default=None, metavar="PATH",
+                        help="a DBC file or folder added to the cell's own (repeatable)")
 
 
 def load_series(args: argparse.Namespace) -> Series:
@@ -219,10 +220,15 @@ def load_series(args: argparse.Namespace) -> Series:
     truth: str | bool | None = getattr(args, "truth", None)
     if getattr(args, "no_truth", False):
         truth = False
+    dbc = getattr(args, "dbc", None) or []
+    # TODO(integrator): with load(extra=...), these 3 lines become db = load(tuple(args.dbc or ()))
+    if len(dbc) > 1:
+        raise ConfigError(f"--dbc: one DBC file for now, got {len(dbc)}: {', '.join(dbc)}")
+    db = load(dbc[0] if dbc else None)  # today one --dbc replaces the cell's DBC
     return channel_series(
         args.log, args.channel, truth=truth, rates=Rates.parse(getattr(args, "cycle", None)),
         progress=False if getattr(args, "quiet", False) else None,
-        db=load(getattr(args, "dbc", None)),
+        db=db,
     )
 
 

@@ -1,6 +1,8 @@
 """A channel of a CAN log as a series: sampled as the runtime's blocks see it (stale ticks
 included), clear errors for a missing channel or a malformed line, and the shared log options."""
 
+import argparse
+
 import can
 import numpy as np
 import pytest
@@ -63,3 +65,25 @@ def test_malformed_log_line_gives_its_line_number(gap_log, tmp_path):
     with pytest.raises(LogFormatError) as err:
         se.channel_series(bad, "EXH_BP_R", progress=False)
     assert err.value.line == 100 and ":100:" in str(err.value)
+
+
+def log_options_parser():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("log")
+    parser.add_argument("--channel", default="EXH_BP_R")
+    se.add_log_options(parser)
+    return parser
+
+
+def test_log_options_take_repeatable_dbc_and_default_to_the_cells(gap_log, tmp_path):
+    parser = log_options_parser()
+    args = parser.parse_args([str(gap_log), "--quiet", "--dbc", "a.dbc", "--dbc", "more/"])
+    assert args.dbc == ["a.dbc", "more/"]
+    plain = parser.parse_args([str(gap_log), "--quiet"])
+    assert plain.dbc is None
+    np.testing.assert_array_equal(
+        se.load_series(plain).y, se.channel_series(gap_log, "EXH_BP_R", progress=False).y)
+    missing = [str(tmp_path / "missing_a.dbc"), str(tmp_path / "missing_b.dbc")]
+    with pytest.raises(ConfigError, match="missing_"):
+        se.load_series(parser.parse_args([str(gap_log), "--quiet", "--dbc", missing[0],
+                                          "--dbc", missing[1]]))

@@ -25,7 +25,9 @@ import time
 import numpy as np
 
 from cell.plant import DutyCycle, Plant, duty_cycle
-from cell.analysis.sweep import Series, kalman_bank, sweep, table2
+from cell.analysis.series import Series
+from cell.analysis.sweep import sweep, table2
+from cell.estimators.filters import kalman_bank
 
 RATE_HZ = 10.0
 SECONDS = 3600.0

@@ -18,7 +18,8 @@ Methods
     y_0), every S_k is R times the S_k of the filter with (q = Q/R, 1), so R has the closed
     form :math:`\\hat R(q) = \\frac{1}{n}\\sum e_k^2/s_k` and the likelihood is profiled
     over the ratio q alone. q is found on a log grid from 1e-8 to 1e2, vectorised over the
-    grid with :func:`cell.analysis.sweep.kalman_bank`, then refined twice on finer grids. numpy only.
+    grid with :func:`cell.estimators.filters.kalman_bank`, then refined twice on finer grids.
+    numpy only.
 ``als``: autocovariance least squares on the differenced series.
     For a random walk plus white noise, :math:`\\Delta y_k = v_k + w_k - w_{k-1}` has
     :math:`\\gamma_0 = Q + 2R`, :math:`\\gamma_1 = -R` and no autocovariance beyond lag 1,
@@ -49,8 +50,9 @@ signal is not a random walk (the cell's truth is steps and holds through a lag) 
 is heavy tailed: the Gaussian likelihood (Whittle's approximation) fits exactly that
 spectrum. Measured against the best of 241 log-spaced Q/R (P0 = 1) scored with the truth:
 ``transient`` seeds 0-4 +0.0, -0.1, +0.5, +0.1, +0.5 % RMSE; ``warmup`` -0.2 %; ``rated``
--0.1 % (``tests/cell/test_autotune.py`` asserts <= 10 % on two seeds). The estimate is only as good as the
-data are representative: a log with no transients has Q ~ 0 and gives a very smooth filter.
+-0.1 % (``tests/cell/analysis/test_autotune.py`` asserts <= 10 % on two seeds). The estimate
+is only as good as the data are representative: a log with no transients has Q ~ 0 and gives a
+very smooth filter.
 
 Nothing is applied here: :func:`autotune` returns a :class:`TuneResult`; ``testcell tune``
 prints it and ``POST /filters/{name}/autotune`` applies it only with ``{"apply": true}``.
@@ -69,7 +71,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
-from .sweep import add_log_options, as_samples, kalman_bank, steady_state_gain
+from ..estimators.filters import kalman_bank, steady_state_gain
+from .series import add_log_options, as_samples, load_series
+from .scores import score_estimates
 
 METHODS = ("ml", "als")
 #: Fewest valid samples :func:`autotune` accepts.
@@ -400,8 +404,6 @@ def main(args: argparse.Namespace) -> int:
     When the log has ``<channel>_TRUE``, the tuned filter's RMSE against it is printed too
     (``rmse_vs_truth``), next to the paper's pair (Q = 1e-6, R = 1e-4).
     """
-    from .sweep import load_series, score_estimates
-
     args.truth, args.no_truth = None, False
     series = load_series(args)
     res = autotune(series.y, series.rate_hz, method=args.method)

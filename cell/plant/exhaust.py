@@ -247,7 +247,6 @@ class ExhaustBanks(Plant):
         self.flow = 0.0
 
     def start(self, u: Mapping[str, float]) -> None:
-        p = self.params
         self.speed = u["ENGINE_SPEED"]
         self.flow = u["EXH_FLOW_TRUE"]
         self.p_gas: dict[str, float] = {}

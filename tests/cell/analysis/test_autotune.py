@@ -14,7 +14,10 @@ import pytest
 
 from cell.analysis import autotune as at
 from cell.analysis import sweep as sw
+from cell.analysis.scores import score_estimates
+from cell.analysis.series import channel_series
 from cell.errors import ConfigError
+from cell.estimators.filters import kalman_bank
 from cell.sim import write_log
 
 #: A fine grid: Q/R from 1e-4 to 1e2 at 40 points per decade (P0 = 1, as the runtime).
@@ -25,13 +28,13 @@ FINE = [(q, 1e-4) for q in np.geomspace(1e-8, 1e-2, 241)]
 def transient(request, tmp_path_factory):
     path = tmp_path_factory.mktemp("tune") / f"transient{request.param}.log"
     write_log(path, "transient", seed=request.param, progress=False)
-    return sw.channel_series(path, "EXH_BP_R", progress=False)
+    return channel_series(path, "EXH_BP_R", progress=False)
 
 
 def test_autotuned_rmse_is_within_10_percent_of_the_best_grid_pair(transient):
     res = at.autotune(transient.y, transient.rate_hz)
-    x, _, _ = sw.kalman_bank(transient.y, res.Q, res.R)
-    rmse_tuned = sw.score_estimates(transient, x)["rmse"][0]
+    x, _, _ = kalman_bank(transient.y, res.Q, res.R)
+    rmse_tuned = score_estimates(transient, x)["rmse"][0]
     best = sw.sweep(transient, FINE)[0]
     paper = sw.sweep(transient, [(1e-6, 1e-4)])[0]
     print(f"\n{transient.source}: autotune Q={res.Q:.4g} R={res.R:.4g} (Q/R {res.ratio:.4g}, "

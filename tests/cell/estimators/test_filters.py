@@ -1,4 +1,5 @@
-"""Native filters against independent references: a textbook loop, filterpy and numpy."""
+"""Native filters against independent references: a textbook loop, filterpy and numpy; the
+batch versions (the vectorised Kalman bank, the batch moving average) against the online blocks."""
 
 import math
 
@@ -6,8 +7,17 @@ import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter
 
-from cell.errors import ParamError
-from cell.estimators.filters import MAX_SAMPLES, MovingAverage, ScalarKalman
+from cell.analysis.sweep import table2
+from cell.errors import ConfigError, ParamError
+from cell.estimators.filters import (
+    MAX_SAMPLES,
+    MovingAverage,
+    ScalarKalman,
+    gain_sequence,
+    kalman_bank,
+    moving_average,
+    steady_state_gain,
+)
 
 
 def textbook_kalman(ys, Q, R, P0=1.0):
@@ -120,3 +130,74 @@ def test_bad_window_changes_nothing(value):
     with pytest.raises(ParamError, match="samples"):
         ma.set_params({"samples": value})
     assert ma.samples == 30
+
+
+# -- batch versions against the online blocks and filterpy ---------------------------------
+def scalar_reference(y, Q, R, P0=1.0):
+    """ScalarKalman stepped by hand; a NaN sample is skipped (state held), as the runtime does."""
+    kf = ScalarKalman("k", "y", Q=Q, R=R, P0=P0)
+    out = []
+    for v in y:
+        out.append(kf.step(0.0, {"y": v})["k"] if np.isfinite(v) else np.nan)
+    return np.array(out)
+
+
+@pytest.fixture(scope="module")
+def noisy_walk():
+    rng = np.random.default_rng(4)
+    y = 500.0 + np.cumsum(rng.normal(0, 3, 3000)) + rng.standard_t(5, 3000) * 40
+    y[[0, 1, 700, 701, 702, 2999]] = np.nan  # stale ticks, including the first ones
+    return y
+
+
+def test_bank_equals_scalar_kalman_for_all_table2_pairs(noisy_walk):
+    pairs = table2()
+    Q, R = np.array(pairs).T
+    x, e, S = kalman_bank(noisy_walk, Q, R)
+    assert x.shape == e.shape == S.shape == (noisy_walk.size, 72)
+    for i in range(72):
+        ref = scalar_reference(noisy_walk, Q[i], R[i])
+        np.testing.assert_array_equal(np.isnan(x[:, i]), np.isnan(ref))
+        np.testing.assert_allclose(x[:, i], ref, rtol=0, atol=1e-9, equal_nan=True)
+    # innovation of a tick: sample minus the previous estimate; none at the first sample
+    j = np.flatnonzero(np.isfinite(noisy_walk))
+    assert np.isnan(e[j[0]]).all()
+    np.testing.assert_allclose(e[j[1:], 3], noisy_walk[j[1:]] - x[j[:-1], 3])
+
+
+def test_bank_matches_filterpy(noisy_walk):
+    from filterpy.kalman import KalmanFilter
+
+    y = noisy_walk[2:700]  # no gaps: filterpy has no notion of a stale sample
+    pairs = [(1e-6, 1e-4), (4e-6, 1e-3), (9e-5, 1e-4), (10.0, 1600.0)]
+    x, e, S = kalman_bank(y, *np.array(pairs).T)
+    for i, (q, r) in enumerate(pairs):
+        kf = KalmanFilter(dim_x=1, dim_z=1)
+        kf.F[:] = kf.H[:] = 1.0
+        kf.Q[:], kf.R[:], kf.x[:], kf.P[:] = q, r, y[0], 1.0
+        for k in range(1, y.size):
+            kf.predict()
+            kf.update(y[k])
+            assert x[k, i] == pytest.approx(kf.x[0, 0], abs=1e-9, rel=1e-12)
+            assert S[k, i] == pytest.approx(kf.S[0, 0], rel=1e-9)
+            assert e[k, i] == pytest.approx(kf.y[0, 0], abs=1e-9, rel=1e-12)
+
+
+def test_gain_sequence_converges_to_the_riccati_fixed_point():
+    K, _ = gain_sequence([1e-6, 1e-2, 5.0], [1e-4, 1e-4, 100.0], 1.0, steps=100_000)
+    assert K.shape[0] < 100_000  # stopped once converged
+    np.testing.assert_allclose(K[-1], steady_state_gain([1e-6, 1e-2, 5.0], [1e-4, 1e-4, 100.0]),
+                               rtol=1e-12)
+    kf = ScalarKalman("k", "y", Q=1e-6, R=1e-4)
+    assert K[-1, 0] == pytest.approx(kf.steady_state_gain(), rel=1e-12)
+
+
+def test_bank_rejects_bad_covariances():
+    with pytest.raises(ConfigError, match="R must be finite and > 0"):
+        kalman_bank([1.0, 2.0], 1e-6, [1e-4, -1.0])
+
+
+def test_moving_average_equals_the_runtime_block(noisy_walk):
+    block = MovingAverage("m", "y", samples=30)
+    ref = [block.step(0.0, {"y": v})["m"] if np.isfinite(v) else np.nan for v in noisy_walk]
+    np.testing.assert_allclose(moving_average(noisy_walk), ref, rtol=1e-12, equal_nan=True)

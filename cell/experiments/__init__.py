@@ -16,6 +16,7 @@ from ..errors import ConfigError
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``testcell experiment``: ``--list``, and one sub-command per registered experiment."""
+    registry.ensure_loaded()
     parser.add_argument("--list", action="store_true", help="list the experiments and exit")
     sub = parser.add_subparsers(dest="experiment", metavar="NAME")
     for exp in registry.EXPERIMENTS.values():

@@ -10,8 +10,10 @@ import json
 
 import pytest
 
-from cell.experiments import closed_loop as experiment
+from cell import experiments
+from cell.cli import main as cli_main
 from cell.errors import ConfigError
+from cell.experiments import closed_loop as experiment
 from cell.experiments.closed_loop import closed_loop, compare
 
 SEEDS = 5
@@ -62,14 +64,14 @@ def test_settling_definition():
 
 def parse(*argv):
     p = argparse.ArgumentParser()
-    experiment.add_arguments(p)
+    experiments.add_arguments(p)
     return p.parse_args(["closed-loop", *argv])
 
 
 def test_json_fields_and_files(tmp_path, capsys):
     args = parse("--feedback", "raw,kalman", "--seeds", "2", "--duration", "30", "--json",
                  "--out", str(tmp_path), "--quiet", "--jobs", "1")
-    assert experiment.main(args) == 0
+    assert experiments.main(args) == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines() if x.strip()]
     assert [d["feedback"] for d in lines] == ["raw", "kalman"]
     for d in lines:
@@ -94,12 +96,27 @@ def test_json_fields_and_files(tmp_path, capsys):
 def test_bad_options_name_the_option(tmp_path, argv, option):
     args = parse(*argv, "--out", str(tmp_path / "out"))
     with pytest.raises(ConfigError, match=option):
-        experiment.main(args)
+        experiments.main(args)
     assert not (tmp_path / "out").exists()  # refused before any work
 
 
-def test_unknown_experiment_is_refused():
-    args = parse()
-    args.name = "open-loop"
-    with pytest.raises(ConfigError, match="open-loop"):
-        experiment.main(args)
+def test_unknown_experiment_is_refused(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["experiment", "open-loop"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "open-loop" in err and "closed-loop" in err  # names it and the choices
+
+
+def test_list_shows_every_registered_experiment_with_its_seed(capsys):
+    assert cli_main(["experiment", "--list"]) == 0
+    out = capsys.readouterr().out
+    assert "closed-loop" in out and "seed 004, Figure 10" in out
+
+
+def test_each_experiment_has_its_own_help(capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["experiment", "closed-loop", "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "--feedback" in out and "--gain-map" in out

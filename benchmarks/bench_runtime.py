@@ -20,6 +20,7 @@ import time
 from cell.dbc import load
 from cell.estimators.filters import native_filters
 from cell.sim import simulate
+from cell.lockstep import feed
 from cell.runtime import Runtime
 
 BUS_LIMIT_FPS = 500_000 / 138
@@ -30,8 +31,7 @@ def main(seconds: float = 600.0) -> None:
     frames = list(simulate(db, "transient", seed=0, duration=seconds))
     rt = Runtime(db, native_filters())
     t0 = time.perf_counter()
-    rt.ingest_many(frames)
-    rt.advance(frames[-1].timestamp)
+    feed(rt, frames)
     elapsed = time.perf_counter() - t0
 
     t1 = time.perf_counter()

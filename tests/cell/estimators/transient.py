@@ -3,6 +3,7 @@
 import numpy as np
 
 from cell.sim import simulate
+from cell.lockstep import feed
 from cell.runtime import Runtime
 
 
@@ -10,12 +11,8 @@ def run_cycle(db, blocks, names, seed):
     """Run the transient cycle's frames through ``blocks``; rows of (t, *names) per MED tick."""
     rt = Runtime(db, blocks)
     rows = []
-    rt.tick_listeners.append(lambda t: rows.append([t, *(rt.channels[n].value for n in names)]))
-    last = 0.0
-    for msg in simulate(db, "transient", seed):
-        rt.ingest(msg)
-        last = msg.timestamp
-    rt.advance(last)
+    feed(rt, simulate(db, "transient", seed),
+         lambda t: rows.append([t, *(rt.channels[n].value for n in names)]))
     return np.array(rows, dtype=float).T
 
 

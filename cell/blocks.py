@@ -147,7 +147,7 @@ class Param:
 
     def _shaped(self, arr: np.ndarray) -> np.ndarray:
         """Bring a parsed array to the parameter's shape (1-D, or 2-D for ``matrix``)."""
-        n = self.size
+        n, given = self.size, _shape_text(arr)
         expected = f"{n}" if n is not None else "one or more"
         if self.shape == "vector":
             if arr.ndim != 1 or arr.size == 0 or (n is not None and arr.size != n):
@@ -157,7 +157,7 @@ class Param:
         if arr.ndim == 0 and n is not None:  # a number: that times the identity
             arr = np.full(n, float(arr))
         if self.shape == "diag" and arr.ndim == 2 and arr.shape[0] == arr.shape[1]:
-            off = arr - np.diag(np.diagonal(arr))
+            off = np.where(np.eye(arr.shape[0], dtype=bool), 0.0, arr)
             if np.any(off != 0.0):
                 i, j = np.argwhere(off != 0.0)[0]
                 raise ParamError(self.name, f"must be diagonal, but element [{i}][{j}] is "
@@ -171,7 +171,7 @@ class Param:
                 or (dims == 2 and arr.shape[1] != m)):
             form = (f"a list of {expected} diagonal elements" if dims == 1
                     else f"a {n}x{n} matrix" if n is not None else "a square matrix")
-            raise ParamError(self.name, f"must be {form}, got shape {_shape_text(arr)}")
+            raise ParamError(self.name, f"must be {form}, got shape {given}")
         return arr
 
     def _check_elements(self, arr: np.ndarray, label: str) -> None:

@@ -372,7 +372,7 @@ class KalmanCore:
                     Qk = self.Q if Q is None else _cov(Q, self.dim_x, "Q")
                     P = Fk @ P @ Fk.T + Qk
             except ArithmeticError as exc:
-                self._diverge("model", f"predict raised {type(exc).__name__}: {exc}")
+                self.diverge("model", f"predict raised {type(exc).__name__}: {exc}")
             self._accept(x_new, P, "predict")
         return self.x
 
@@ -419,11 +419,11 @@ class KalmanCore:
                     P = I_KH @ P @ I_KH.T + K @ Rk @ K.T
                 nis = float(y @ SI @ y)
             except ArithmeticError as exc:
-                self._diverge("model", f"update raised {type(exc).__name__}: {exc}")
+                self.diverge("model", f"update raised {type(exc).__name__}: {exc}")
             except np.linalg.LinAlgError as exc:
-                self._diverge("singular", f"innovation covariance S is singular ({exc})")
+                self.diverge("singular", f"innovation covariance S is singular ({exc})")
             if not (math.isfinite(nis) and np.isfinite(K).all()):
-                self._diverge("nonfinite", "non-finite gain or innovation in update")
+                self.diverge("nonfinite", "non-finite gain or innovation in update")
             self._accept(x_new, P, "update")
         self.K, self.y, self.S, self.nis = K, y, S, nis
         self._log_likelihood = None
@@ -431,7 +431,7 @@ class KalmanCore:
         if self.nis_window > 0:
             self._nis_run = self._nis_run + 1 if nis > self.nis_threshold else 0
             if self._nis_run >= self.nis_window:
-                self._diverge("nis", f"NIS above {self.nis_threshold:.4g} (chi-square {self.dim_z} "
+                self.diverge("nis", f"NIS above {self.nis_threshold:.4g} (chi-square {self.dim_z} "
                                      f"dof, p = {self.nis_gate:g}) in {self.nis_window} "
                                      f"consecutive updates, last {nis:.4g}")
         return self.x
@@ -440,10 +440,10 @@ class KalmanCore:
     def _accept(self, x: np.ndarray, P: np.ndarray, stage: str) -> None:
         """Check, constrain and store a step's result, or reset and raise."""
         if not np.isfinite(x).all():
-            self._diverge("nonfinite", f"non-finite state after {stage}: {x.tolist()}")
+            self.diverge("nonfinite", f"non-finite state after {stage}: {x.tolist()}")
         if P is not self.P:
             if not np.isfinite(P).all():
-                self._diverge("nonfinite", f"non-finite covariance after {stage}")
+                self.diverge("nonfinite", f"non-finite covariance after {stage}")
             P = self._guard(P)
         if self.constraint is not None:
             x = np.asarray(self.constraint(x), dtype=float)
@@ -468,7 +468,7 @@ class KalmanCore:
         self.resets += 1
         self.last_reset_reason = reason
 
-    def _diverge(self, kind: str, reason: str) -> None:
+    def diverge(self, kind: str, reason: str) -> None:
         """Reset, log the reason (a warning when its kind changes) and raise :class:`Diverged`."""
         self.reset(reason)
         level = logging.WARNING if kind != self._last_kind else logging.DEBUG
@@ -512,6 +512,8 @@ class Model:
         ``"rk4"`` (classic Runge-Kutta) or ``"euler"``, for a continuous model.
     max_step:
         Longest integration sub-step, s (``None``: one step per call).
+    units:
+        Unit of each state or output by name (shown on the observer's channels).
 
     Notes
     -----
@@ -533,6 +535,7 @@ class Model:
     dt: float = 0.0
     method: str = "rk4"
     max_step: float | None = None
+    units: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.method not in _SCHEMES:

@@ -19,6 +19,19 @@ from cell.estimators.core import (
 )
 
 TOL = dict(rtol=1e-9, atol=1e-9)
+TOL_APPROX = dict(rel=1e-9, abs=1e-9)
+
+
+def assert_same(ours, ref, update=False):
+    """x and P (and after an update K, y, S, log-likelihood) agree with filterpy's to 1e-9."""
+    np.testing.assert_allclose(ours.x, ref.x.ravel(), **TOL)
+    np.testing.assert_allclose(ours.P, ref.P, **TOL)
+    if update:
+        np.testing.assert_allclose(ours.K, ref.K, **TOL)
+        np.testing.assert_allclose(ours.y, ref.y.ravel(), **TOL)
+        np.testing.assert_allclose(ours.S, ref.S, **TOL)
+        assert ours.log_likelihood == pytest.approx(float(np.squeeze(ref.log_likelihood)), **TOL_APPROX)
+        assert ours.nis == pytest.approx((ref.y.T @ np.linalg.inv(ref.S) @ ref.y).item(), rel=1e-9)
 
 
 # -- filterpy ---------------------------------------------------------------------------
@@ -44,18 +57,10 @@ def test_linear_filter_matches_filterpy_kalman_filter():
         z = H @ truth + rng.multivariate_normal(np.zeros(2), R)
         ref.predict(u=u[:, None])
         ours.predict(u)
-        np.testing.assert_allclose(ours.x, ref.x.ravel(), **TOL)
-        np.testing.assert_allclose(ours.P, ref.P, **TOL)
+        assert_same(ours, ref)
         ref.update(z[:, None])
         ours.update(z)
-        np.testing.assert_allclose(ours.x, ref.x.ravel(), **TOL)
-        np.testing.assert_allclose(ours.P, ref.P, **TOL)
-        np.testing.assert_allclose(ours.K, ref.K, **TOL)
-        np.testing.assert_allclose(ours.y, ref.y.ravel(), **TOL)
-        np.testing.assert_allclose(ours.S, ref.S, **TOL)
-        assert ours.log_likelihood == pytest.approx(float(np.squeeze(ref.log_likelihood)),
-                                                    rel=1e-9, abs=1e-9)
-        assert ours.nis == pytest.approx((ref.y.T @ ref.SI @ ref.y).item(), rel=1e-9)
+        assert_same(ours, ref, update=True)
     assert ours.guard_count == 0 and ours.resets == 0
 
 
@@ -101,17 +106,10 @@ def test_extended_filter_matches_filterpy_ekf_on_a_pendulum():
         ref.F = pend_F(ref.x.ravel(), u)
         ref.predict(u)
         ours.predict(u, f=pend_f, F=pend_F)
-        np.testing.assert_allclose(ours.x, ref.x.ravel(), **TOL)
-        np.testing.assert_allclose(ours.P, ref.P, **TOL)
+        assert_same(ours, ref)
         ref.update(z[:, None], lambda x: pend_H(x.ravel()), lambda x: pend_h(x.ravel())[:, None])
         ours.update(z, h=pend_h, H=pend_H)
-        np.testing.assert_allclose(ours.x, ref.x.ravel(), **TOL)
-        np.testing.assert_allclose(ours.P, ref.P, **TOL)
-        np.testing.assert_allclose(ours.K, ref.K, **TOL)
-        np.testing.assert_allclose(ours.y, ref.y.ravel(), **TOL)
-        np.testing.assert_allclose(ours.S, ref.S, **TOL)
-        assert ours.log_likelihood == pytest.approx(float(np.squeeze(ref.log_likelihood)),
-                                                    rel=1e-9, abs=1e-9)
+        assert_same(ours, ref, update=True)
     # the filter tracks the true pendulum, not only filterpy
     assert abs(ours.x[0] - truth[0]) < 0.1
 

@@ -9,27 +9,69 @@ The base class validates tunable parameters; subclasses fill ``_step`` and ``_ap
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
+
+import numpy as np
 
 from .errors import ParamError
 
 RATE_NAMES = ("FAS", "MED", "SLO")
 
 
+#: shapes a :class:`Param` can take (see its docstring)
+SHAPES = ("scalar", "vector", "diag", "matrix")
+
+Bound = float | tuple[float, ...] | None
+
+
 @dataclass(frozen=True)
 class Param:
-    """A tunable parameter: its type and the open or closed bounds it must respect."""
+    """A tunable parameter: its type, shape and the open or closed bounds it must respect.
+
+    Shapes and their JSON form
+    --------------------------
+    ``scalar`` (default)
+        A number; ``type`` is ``float`` or ``int``.
+    ``vector``
+        A list of ``size`` numbers, e.g. an initial state ``x0``. Checked into a 1-D float
+        array.
+    ``diag``
+        A diagonal matrix, e.g. a covariance ``Q``, given as the list of its ``size``
+        diagonal elements. Also accepted: the full nested list if it is diagonal, and a
+        single number ``q`` meaning ``q`` times the identity. Checked into a 1-D float
+        array of the diagonal, and given back (:meth:`dump`) as that list.
+    ``matrix``
+        A full symmetric ``size`` x ``size`` matrix as a nested list (rows). A list of
+        ``size`` numbers or a single number is taken as a diagonal. Checked into a 2-D
+        float array and given back as a nested list.
+
+    Every element must be finite. The bounds ``gt``/``ge``/``le`` apply to each element
+    of a vector or ``diag`` and to the diagonal of a ``matrix``; for these shapes a bound
+    may also be a tuple with one bound per element. ``pd`` requires a ``diag`` or
+    ``matrix`` to be positive definite (a ``diag``: every element > 0; a ``matrix``: a
+    Cholesky factor exists). ``size`` of ``None`` accepts any length >= 1.
+    """
 
     name: str
     type: type  # float or int
     doc: str
-    gt: float | None = None
-    ge: float | None = None
-    le: float | None = None
+    gt: Bound = None
+    ge: Bound = None
+    le: Bound = None
+    shape: str = "scalar"
+    size: int | None = None
+    pd: bool = False
 
-    def check(self, value: Any) -> float | int:
-        """Return ``value`` converted to the parameter's type, or raise :class:`ParamError`."""
+    def __post_init__(self) -> None:
+        if self.shape not in SHAPES:
+            raise ValueError(f"Param {self.name}: shape must be one of {SHAPES}, got {self.shape!r}")
+
+    def check(self, value: Any) -> Any:
+        """Return ``value`` converted to the parameter's type and shape, or raise :class:`ParamError`."""
+        if self.shape != "scalar":
+            return self._check_array(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ParamError(self.name, f"must be a number, got {type(value).__name__} {value!r}")
         if self.type is int:
@@ -49,6 +91,110 @@ class Param:
             raise ParamError(self.name, f"must be <= {self.le:g}, got {value!r}")
         return value
 
+    def dump(self, value: Any) -> Any:
+        """The JSON form of a checked value: the number itself, or (nested) lists."""
+        return value.tolist() if isinstance(value, np.ndarray) else value
+
+    # -- vectors and matrices -----------------------------------------------------------
+    def _check_array(self, value: Any) -> np.ndarray:
+        arr = self._shaped(self._numbers(value))
+        if self.shape == "matrix":
+            if not np.all(np.isfinite(arr)):
+                i, j = np.argwhere(~np.isfinite(arr))[0]
+                raise ParamError(self.name, f"element [{i}][{j}] must be finite, "
+                                            f"got {float(arr[i, j])!r}")
+            if not np.allclose(arr, arr.T, rtol=1e-12, atol=0.0):
+                i, j = np.argwhere(~np.isclose(arr, arr.T, rtol=1e-12, atol=0.0))[0]
+                raise ParamError(self.name, f"must be symmetric: [{i}][{j}] = {float(arr[i, j])!r} but "
+                                            f"[{j}][{i}] = {float(arr[j, i])!r}")
+            arr = 0.5 * (arr + arr.T)
+            self._check_elements(np.diagonal(arr), "diagonal element")
+            if self.pd:
+                try:
+                    np.linalg.cholesky(arr)
+                except np.linalg.LinAlgError:
+                    low = np.linalg.eigvalsh(arr)[0]
+                    raise ParamError(self.name, f"must be positive definite, its smallest "
+                                                f"eigenvalue is {low:g}") from None
+        else:
+            label = "diagonal element" if self.shape == "diag" else "element"
+            self._check_elements(arr, label)
+            if self.pd and np.any(arr <= 0.0):
+                i = int(np.argmax(arr <= 0.0))
+                raise ParamError(self.name, f"must be positive definite: {label} [{i}] is "
+                                            f"{float(arr[i])!r}")
+        arr.flags.writeable = False
+        return arr
+
+    def _numbers(self, value: Any) -> np.ndarray:
+        """``value`` as a float array, refusing anything but (nested lists of) numbers."""
+        if isinstance(value, np.ndarray):
+            value = value.tolist()
+
+        def numeric(v: Any) -> bool:
+            if isinstance(v, (list, tuple)):
+                return all(numeric(e) for e in v)
+            return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+        what = {"vector": "a list of numbers", "diag": "a list of diagonal elements",
+                "matrix": "a nested list (rows) of numbers"}[self.shape]
+        if not numeric(value):
+            raise ParamError(self.name, f"must be {what}, got {type(value).__name__} {value!r}")
+        try:
+            return np.array(value, dtype=float)
+        except ValueError:  # ragged nesting
+            raise ParamError(self.name, f"must be {what} of equal lengths, got {value!r}") from None
+
+    def _shaped(self, arr: np.ndarray) -> np.ndarray:
+        """Bring a parsed array to the parameter's shape (1-D, or 2-D for ``matrix``)."""
+        n, given = self.size, _shape_text(arr)
+        expected = f"{n}" if n is not None else "one or more"
+        if self.shape == "vector":
+            if arr.ndim != 1 or arr.size == 0 or (n is not None and arr.size != n):
+                raise ParamError(self.name, f"must be a list of {expected} numbers, got shape "
+                                            f"{_shape_text(arr)}")
+            return arr
+        if arr.ndim == 0 and n is not None:  # a number: that times the identity
+            arr = np.full(n, float(arr))
+        if self.shape == "diag" and arr.ndim == 2 and arr.shape[0] == arr.shape[1]:
+            off = np.where(np.eye(arr.shape[0], dtype=bool), 0.0, arr)
+            if np.any(off != 0.0):
+                i, j = np.argwhere(off != 0.0)[0]
+                raise ParamError(self.name, f"must be diagonal, but element [{i}][{j}] is "
+                                            f"{float(arr[i, j])!r}")
+            arr = np.diagonal(arr).copy()
+        if self.shape == "matrix" and arr.ndim == 1:
+            arr = np.diag(arr)
+        dims = 1 if self.shape == "diag" else 2
+        m = arr.shape[0] if arr.ndim else 0
+        if (arr.ndim != dims or m == 0 or (n is not None and m != n)
+                or (dims == 2 and arr.shape[1] != m)):
+            form = (f"a list of {expected} diagonal elements" if dims == 1
+                    else f"a {n}x{n} matrix" if n is not None else "a square matrix")
+            raise ParamError(self.name, f"must be {form}, got shape {given}")
+        return arr
+
+    def _check_elements(self, arr: np.ndarray, label: str) -> None:
+        """Finite values and the bounds, element by element; the error names the first bad one."""
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise ParamError(self.name, f"{label} [{i}] must be finite, got {float(arr[i])!r}")
+        for bound, op, ok in ((self.gt, ">", np.greater), (self.ge, ">=", np.greater_equal),
+                              (self.le, "<=", np.less_equal)):
+            if bound is None:
+                continue
+            limit = np.broadcast_to(np.asarray(bound, dtype=float), arr.shape)
+            bad = ~ok(arr, limit)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise ParamError(self.name, f"{label} [{i}] must be {op} {limit[i]:g}, "
+                                            f"got {float(arr[i])!r}")
+
+
+def _shape_text(arr: np.ndarray) -> str:
+    return "scalar" if arr.ndim == 0 else "x".join(str(d) for d in arr.shape)
+
 
 class Block:
     """Base class of everything the runtime steps.
@@ -61,6 +207,9 @@ class Block:
         Channel names read and written.
     rate:
         ``"FAS"``, ``"MED"`` or ``"SLO"``.
+    units:
+        Optional unit per output channel, for outputs that are not DBC signals (a DBC
+        signal's own unit wins).
     """
 
     kind: ClassVar[str] = "block"
@@ -74,7 +223,13 @@ class Block:
     VOLATILE: ClassVar[tuple[str, ...]] = ()
 
     def __init__(
-        self, name: str, inputs: list[str], outputs: list[str], rate: str | tuple[str, ...] = "MED"
+        self,
+        name: str,
+        inputs: list[str],
+        outputs: list[str],
+        rate: str | tuple[str, ...] = "MED",
+        *,
+        units: Mapping[str, str] | None = None,
     ) -> None:
         rates = (rate,) if isinstance(rate, str) else tuple(rate)
         for r in rates:
@@ -90,6 +245,8 @@ class Block:
         self.rates = rates
         #: output -> reason, for outputs the last step could not compute (returned as NaN)
         self.errors: dict[str, str] = {}
+        #: output -> unit, for outputs without a DBC unit
+        self.units: dict[str, str] = dict(units or {})
 
     @property
     def rate(self) -> str:
@@ -97,7 +254,8 @@ class Block:
 
     # -- parameters -----------------------------------------------------------------
     def params(self) -> dict[str, Any]:
-        return {p: getattr(self, p) for p in self.PARAMS}
+        """The tunable parameters in their JSON form (numbers and lists)."""
+        return {p: spec.dump(getattr(self, p)) for p, spec in self.PARAMS.items()}
 
     def validate(self, changes: dict[str, Any]) -> dict[str, Any]:
         """Check a parameter change as a whole; raise :class:`ParamError` on the first bad field."""

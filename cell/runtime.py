@@ -136,7 +136,7 @@ class Runtime:
             for out in block.outputs:
                 self.producer[out] = block.name
                 unit = self.db.signals[out].unit if out in self.db.signals else ""
-                unit = unit or getattr(block, "units", {}).get(out, "")
+                unit = unit or block.units.get(out, "")
                 if not unit and block.keeps_input_unit and len(block.inputs) == 1:
                     src = self.db.signals.get(block.inputs[0]) or self._channels.get(block.inputs[0])
                     unit = src.unit if src else ""  # a filter keeps its input's unit

@@ -69,7 +69,7 @@ class Oscillator(Plant):
                 "TOY_POS_TRUE": self.x[0], "TOY_VEL_TRUE": self.x[1]}
 
 
-def toy_engine(settings) -> Composition:
-    comp = Composition("toy", [Oscillator(seed=settings.seed)], duration=40.0,
-                       about={"duty": settings.duty or "square", "seed": settings.seed})
-    return comp
+    @classmethod
+    def composition(cls, seed: int = 0) -> Composition:
+        return Composition("toy", [cls(seed=seed)], duration=40.0,
+                           about={"duty": "square", "seed": seed})

@@ -200,7 +200,11 @@ def _common_runtime_options(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``testcell`` parser, with every registered engine's options and every experiment."""
-    parser = argparse.ArgumentParser(prog="testcell", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="testcell",
+        description="An emulated engine test cell that speaks CAN: the plant simulator, the "
+                    "cyclic runtime with its filters, observers and scripts, and the HTTP API.",
+        epilog="Every option can also be set as TESTCELL_<OPTION> in the environment.")
     parser.add_argument("--version", action="version", version=f"testcell {__version__}")
     parser.add_argument("--log-level", default=None,
                         choices=LOG_LEVELS)

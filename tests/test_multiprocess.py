@@ -136,6 +136,56 @@ def pid_alive(pid: int) -> bool:
     return Path(f"/proc/{pid}").exists() and "Z" not in Path(f"/proc/{pid}/stat").read_text().split()[2]
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+class CanLogger:
+    """python-can's own ``can.logger`` recording the bus to a candump ``.log``.
+
+    It is stopped the way a user stops it, with SIGINT (Ctrl-C): its ``KeyboardInterrupt``
+    path shuts the bus down and closes the file. A process whose parent ignores SIGINT
+    inherits SIG_IGN, and Python then installs no ``KeyboardInterrupt`` handler, so the
+    logger would never stop. That is what a non-interactive shell does to a background job
+    (CI runners, ``cmd &``). The child therefore gets the default disposition back before exec.
+    It runs in its own session, so a Ctrl-C on the terminal running pytest does not reach it.
+    """
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.err = path.with_name(path.name + ".stderr")
+        with open(self.err, "w") as err:
+            self.proc = subprocess.Popen(
+                [PY, "-m", "can.logger", "-i", BUS, "-c", MULTICAST_GROUP, "-f", str(path)],
+                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
+                preexec_fn=_default_sigint, start_new_session=True)
+        # can.logger opens its file only after it has joined the group, so once the file
+        # exists it is recording (and its SIGINT handler is in place)
+        end = time.monotonic() + 30
+        while not path.exists():
+            if self.proc.poll() is not None or time.monotonic() > end:
+                self.kill()
+                raise AssertionError(f"can.logger did not start (rc {self.proc.returncode}): "
+                                     f"{self.err.read_text()[-2000:]}")
+            time.sleep(0.05)
+
+    def stop(self) -> Path:
+        """SIGINT, then wait for the logger to close its file; the log is complete after this."""
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            rc = self.proc.wait(15)
+        finally:
+            self.kill()
+        assert rc == 0, f"can.logger exited {rc}: {self.err.read_text()[-2000:]}"
+        return self.path
+
+    def kill(self) -> None:
+        """Leave no logger behind, whatever happened."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     """A cell with its simulator at 8x, a candump log of it from python-can's logger, and
@@ -150,20 +200,19 @@ def recorded(tmp_path_factory):
         found["first_ok_s"] = time.monotonic() - t0
         sim_pids = children_of(up.proc.pid)
         found["sim_pids"] = sim_pids
-        rec = tmp / "recorded.log"
-        logger = subprocess.Popen([PY, "-m", "can.logger", "-i", BUS, "-c", MULTICAST_GROUP, "-f", str(rec)],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        # rated: idle 20 s, ramp 60 s, then steady; at 8x that is ~10 s of wall time
-        up.wait(lambda: up.channel("ENGINE_SPEED")["value"] > 1790, 40, "rated speed")
-        # bus time is receive time: the 10 s history must lie wholly after the ramp, and the
-        # filters need a few seconds of bus time to settle
-        time.sleep(12.0)
-        found["steady_kalman"] = up.history("EXH_BP_R_Kalman", 10)
-        found["steady_true"] = up.history("EXH_BP_R_TRUE", 10)
-        found["steady_raw"] = up.history("EXH_BP_R", 10)
-        logger.send_signal(signal.SIGINT)
-        logger.wait(15)
-        found["recorded"] = rec
+        logger = CanLogger(tmp / "recorded.log")
+        try:
+            # rated: idle 20 s, ramp 60 s, then steady; at 8x that is ~10 s of wall time
+            up.wait(lambda: up.channel("ENGINE_SPEED")["value"] > 1790, 40, "rated speed")
+            # bus time is receive time: the 10 s history must lie wholly after the ramp, and the
+            # filters need a few seconds of bus time to settle
+            time.sleep(12.0)
+            found["steady_kalman"] = up.history("EXH_BP_R_Kalman", 10)
+            found["steady_true"] = up.history("EXH_BP_R_TRUE", 10)
+            found["steady_raw"] = up.history("EXH_BP_R", 10)
+            found["recorded"] = logger.stop()
+        finally:
+            logger.kill()
 
         # retune while running; later outputs must follow the new gain
         code, body = http("PATCH", up.base + "/filters/EXH_BP_R_Kalman", {"Q": 1e-4})
@@ -247,17 +296,17 @@ def test_played_log_through_live_runtime_agrees_with_replay(recorded, tmp_path):
                 w.on_message_received(msg)
     up = Up(tmp_path, "--no-sim", "--state", str(tmp_path / "t.json"))
     cap = tmp_path / "captured.log"
+    logger = None
     try:
-        logger = subprocess.Popen([PY, "-m", "can.logger", "-i", BUS, "-c", MULTICAST_GROUP, "-f", str(cap)],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        time.sleep(1.0)
+        logger = CanLogger(cap)
         subprocess.run([PY, "-m", "can.player", "-i", BUS, "-c", MULTICAST_GROUP, str(inject)],
-                       check=True, timeout=120, stdout=subprocess.DEVNULL)
+                       check=True, timeout=120, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         time.sleep(1.0)
-        logger.send_signal(signal.SIGINT)
-        logger.wait(15)
+        logger.stop()
         assert up.channel("EXH_BP_R_Kalman")["status"] == "stale"  # the log ended
     finally:
+        if logger is not None:
+            logger.kill()
         up.stop()
 
     out = tmp_path / "replay.csv"

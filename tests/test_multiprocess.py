@@ -192,12 +192,16 @@ def recorded(tmp_path_factory):
     what the tests measured while it ran."""
     tmp = tmp_path_factory.mktemp("cell")
     state = tmp / "tuning.json"
-    up = Up(tmp, "--speed", "8", "--seed", "3", "--duty", "rated", "--state", str(state))
+    # --bp-limit is a simulator option of the engine: up must hand it to the simulator
+    # process, which publishes it in ENGINE_STATUS (default 1200; 900 is above rated's 680)
+    up = Up(tmp, "--speed", "8", "--seed", "3", "--duty", "rated", "--bp-limit", "900",
+            "--state", str(state))
     found = {"tmp": tmp, "state": state}
     try:
         t0 = time.monotonic()
         up.wait(lambda: up.channel("EXH_BP_R_Kalman")["status"] == "ok", 20, "EXH_BP_R_Kalman ok")
         found["first_ok_s"] = time.monotonic() - t0
+        found["bp_limit"] = up.channel("EXH_BP_LIMIT")
         sim_pids = children_of(up.proc.pid)
         found["sim_pids"] = sim_pids
         logger = CanLogger(tmp / "recorded.log")
@@ -229,6 +233,10 @@ def recorded(tmp_path_factory):
 
 def test_filtered_channel_goes_ok_within_seconds(recorded):
     assert recorded["first_ok_s"] < 15
+
+
+def test_up_hands_its_simulator_options_to_the_simulator_process(recorded):
+    assert recorded["bp_limit"]["value"] == 900 and recorded["bp_limit"]["status"] == "ok"
 
 
 def test_rated_steady_state_mean_tracks_truth(recorded):

@@ -32,7 +32,8 @@ def build_runtime(settings: Settings, store=None):
     """The runtime ``up`` and ``replay`` share: the DBC files, the rates, the native blocks
     of the engine (:data:`cell.registry.BLOCK_SETS`; every engine's when ``settings.engine``
     is ``None``) and the scripts. With scripts given, only those run (plus the native blocks
-    with ``native``); otherwise the native blocks and the shipped (and saved) scripts."""
+    with ``native``); otherwise the native blocks, the saved scripts and, for an engine whose
+    frames they read, the shipped ones."""
     from .dbc import load
     from .runtime import Rates, Runtime
     from .scripting import ScriptManager
@@ -48,7 +49,8 @@ def build_runtime(settings: Settings, store=None):
     if settings.scripts:
         scripts.load_files([Path(p) for p in settings.scripts])
     else:
-        for problem in scripts.load_defaults():
+        shipped = settings.engine is None or registry.engine_profile(settings.engine).shipped_scripts
+        for problem in scripts.load_defaults(shipped=shipped):
             log.warning("%s", problem)
     return rt, scripts
 

@@ -75,6 +75,9 @@ class EngineProfile:
     duties: tuple[str, ...] = ()
     options: tuple[Option, ...] = ()
     """Simulator options of this engine only (``--valve``, ``--bp-limit``, ...)."""
+    shipped_scripts: bool = False
+    """Whether the formula-device scripts shipped with the cell (seed 004's back-pressure
+    filters, ``cell/formula/shipped/``) read this engine's frames and load by default."""
 
     @property
     def default_duty(self) -> str | None:

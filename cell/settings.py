@@ -47,9 +47,9 @@ class Option:
     metavar: str | None = None
     check: Callable[[Any], str | None] | None = None
 
-    def add_to(self, parser: argparse.ArgumentParser) -> None:
+    def add_to(self, parser: argparse.ArgumentParser, note: str = "") -> None:
         parser.add_argument(self.flag, dest=self.key, type=self.type, default=None,
-                            metavar=self.metavar, help=self.help)
+                            metavar=self.metavar, help=self.help + note)
 
     def validate(self, value: Any) -> None:
         problem = self.check(value) if self.check is not None and value is not None else None
@@ -97,9 +97,7 @@ def add_sim_options(parser: argparse.ArgumentParser) -> None:
     for opt in SIM_OPTIONS:
         opt.add_to(parser)
     for opt, engines in engine_options().values():
-        opt.add_to(parser)
-        action = parser._option_string_actions[opt.flag]
-        action.help = f"{opt.help} [{', '.join(engines)}]"
+        opt.add_to(parser, f" [{', '.join(engines)}]")
 
 
 def _bool(text: str) -> bool:

@@ -92,7 +92,8 @@ def test_observers_are_tuned_over_http_saved_and_restored(toy, tmp_path):
     settings = Settings.build({"engine": "toy"}, environ={})
     store = TuningStore(tmp_path / "tuning.json")
     store.load()
-    rt, _ = build_runtime(settings, store)
+    rt, scripts = build_runtime(settings, store)
+    assert scripts.names() == []  # seed 004's shipped scripts read another engine's frames
     sim = build_sim(settings, rt.db)
     Lockstep(sim, rt).run(5.0)
     client = TestClient(create_app(Cell(runtime=rt, bus="none", tuning=store)))

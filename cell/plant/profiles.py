@@ -84,6 +84,7 @@ LARGE_DIESEL = registry.EngineProfile(
                 "(seed 004)",
     build=_build_large_diesel,
     duties=CYCLES,
+    shipped_scripts=True,
     options=(
         Option("valve", "--valve", float, metavar="PERCENT", check=_valve_check,
                help="initial valve opening in %% (default: the 680 mmH2O opening at rated)"),

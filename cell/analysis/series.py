@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
+from ..estimators.filters import as_samples
 
 
 @dataclass
@@ -77,13 +78,6 @@ class Series:
             raise ConfigError(f"truth has {tt.size} samples, the channel {yy.size}")
         t = t0 + np.arange(yy.size) / rate_hz
         return cls(t, yy, tt, channel, None if tt is None else f"{channel}_TRUE", rate_hz)
-
-
-def as_samples(values: Sequence[float | None] | np.ndarray) -> np.ndarray:
-    """A float array from samples, ``None`` (a stale tick) becoming NaN."""
-    if isinstance(values, np.ndarray):
-        return np.asarray(values, dtype=float).ravel()
-    return np.array([np.nan if v is None else float(v) for v in values], dtype=float)
 
 
 def channel_series(

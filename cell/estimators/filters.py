@@ -24,7 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from ..analysis.series import as_samples
 from ..blocks import Block, Param
 from ..errors import ConfigError
 
@@ -143,6 +142,13 @@ def native_filters(sources: tuple[str, ...] = ("EXH_BP_L", "EXH_BP_R")) -> list[
 
 
 # -- batch versions -------------------------------------------------------------------------
+def as_samples(values: Sequence[float | None] | np.ndarray) -> np.ndarray:
+    """A float array from samples, ``None`` (a stale tick) becoming NaN."""
+    if isinstance(values, np.ndarray):
+        return np.asarray(values, dtype=float).ravel()
+    return np.array([np.nan if v is None else float(v) for v in values], dtype=float)
+
+
 def _as_pairs(Q: Any, R: Any, P0: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     q, r, p0 = np.broadcast_arrays(
         np.atleast_1d(np.asarray(Q, dtype=float)).ravel(),

@@ -149,3 +149,12 @@ def test_up_with_the_plugins_engine_serves_its_observer(tmp_path):
         out, _ = proc.communicate(timeout=20)
     assert proc.returncode == 0, out
     assert "Traceback" not in out, out
+
+
+def test_a_plugin_that_fails_to_load_stops_start_up_naming_it(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "cell", "sim", "--out", str(tmp_path / "x.log")],
+                       capture_output=True, text=True, cwd=ROOT, timeout=60,
+                       env={**ENV, "TESTCELL_PLUGINS": "tests.plugins.no_such_plugin"})
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "tests.plugins.no_such_plugin" in r.stderr and "failed to load" in r.stderr
+    assert not (tmp_path / "x.log").exists()

@@ -156,6 +156,7 @@ def write_log(path: str | Path, settings: Settings | str, seed: int = 0,
         settings = Settings.build({"duty": settings, "seed": seed, "duration": duration,
                                    **options}, environ={})
 
+    settings = settings.for_simulator()
     sim = build(settings, db, t0)
     duration = settings.duration if settings.duration is not None else sim.plant.duration
     if duration is None or duration < 0 or not math.isfinite(duration):
@@ -169,7 +170,7 @@ def write_log(path: str | Path, settings: Settings | str, seed: int = 0,
         raise ConfigError(f"--out {path}: cannot write: {exc.strerror or exc}") from exc
     per_second = round(1.0 / sim.dt)
     count = 0
-    desc = f"sim {settings.for_simulator().engine} {settings.for_simulator().duty}"
+    desc = f"sim {settings.engine} {settings.duty}"
     with writer, tqdm(total=round(duration, 2), unit="s", desc=desc, disable=not progress) as bar:
         for k, frames in Lockstep(sim).steps(round(duration / sim.dt), frames=True):
             for msg in frames:

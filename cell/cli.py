@@ -1,4 +1,5 @@
-"""The ``testcell`` command: ``up``, ``sim``, ``replay``, ``sweep``, ``tune`` and ``experiment``."""
+"""The ``testcell`` command: ``up``, ``sim``, ``replay``, ``sweep``, ``tune``, ``experiment`` and
+``design``."""
 
 from __future__ import annotations
 
@@ -267,6 +268,9 @@ def build_parser() -> argparse.ArgumentParser:
     ex = sub.add_parser("experiment", help="run an experiment (--list shows them)")
     experiments.add_arguments(ex)
     ex.set_defaults(func=_with_args_only(experiments.main))
+    de = sub.add_parser("design", help="design an observer's tables from a log (--list shows the tools)")
+    experiments.DESIGN_COMMAND.add_arguments(de)
+    de.set_defaults(func=_with_args_only(experiments.DESIGN_COMMAND.main))
     return parser
 
 

@@ -182,6 +182,16 @@ def experiment(exp: Experiment) -> Experiment:
     return _register(EXPERIMENTS, "experiment", exp.name, exp)
 
 
+#: ``testcell design NAME``: tools that turn a log into an observer's tables (gains, biases).
+#: A design has the same shape as an experiment: its options and its run.
+DESIGNS: dict[str, Experiment] = {}
+
+
+def design(d: Experiment) -> Experiment:
+    """Register a design tool (``testcell design NAME``)."""
+    return _register(DESIGNS, "design tool", d.name, d)
+
+
 # -- plumbing -------------------------------------------------------------------------------
 def _register(table: dict[str, Any], what: str, name: str, item: Any) -> Any:
     old = table.get(name)

@@ -14,35 +14,50 @@ from .. import registry
 from ..errors import ConfigError
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """``testcell experiment``: ``--list``, and one sub-command per registered experiment."""
-    registry.ensure_loaded()
-    parser.add_argument("--list", action="store_true", help="list the experiments and exit")
-    sub = parser.add_subparsers(dest="experiment", metavar="NAME")
-    for exp in registry.EXPERIMENTS.values():
-        p = sub.add_parser(exp.name, help=f"{exp.help} ({exp.seed})" if exp.seed else exp.help,
-                           description=exp.description or exp.help)
-        exp.add_arguments(p)
+class Commands:
+    """A command with one sub-command per registered item: ``testcell experiment`` over
+    :data:`~cell.registry.EXPERIMENTS`, ``testcell design`` over
+    :data:`~cell.registry.DESIGNS`."""
+
+    def __init__(self, command: str, noun: str, table: dict[str, registry.Experiment]) -> None:
+        self.command = command
+        self.noun = noun
+        self.table = table
+
+    def add_arguments(self, parser: argparse.ArgumentParser) -> None:
+        """``--list``, and one sub-command per registered item."""
+        registry.ensure_loaded()
+        parser.add_argument("--list", action="store_true", help=f"list the {self.noun}s and exit")
+        sub = parser.add_subparsers(dest=self.command, metavar="NAME")
+        for item in self.table.values():
+            p = sub.add_parser(item.name, help=f"{item.help} ({item.seed})" if item.seed else item.help,
+                               description=item.description or item.help)
+            item.add_arguments(p)
+
+    def listing(self) -> str:
+        """One line per item: name, what it reproduces, what it does."""
+        rows = [(e.name, e.seed, e.help) for e in self.table.values()]
+        width = max((len(r[0]) for r in rows), default=0)
+        return "\n".join(f"{n:<{width}}  {s + ': ' if s else ''}{h}" for n, s, h in rows)
+
+    def main(self, args: argparse.Namespace) -> int:
+        """Run the item named on the command line, or list them."""
+        name = getattr(args, self.command, None)
+        if getattr(args, "list", False) or name is None:
+            print(self.listing())
+            if name is None and not getattr(args, "list", False):
+                print(f"\nrun one with: testcell {self.command} NAME [options]  (NAME --help for "
+                      "its options)")
+            return 0
+        item = self.table.get(name)
+        if item is None:
+            raise ConfigError(f"{self.noun} {name!r} is unknown; choose one of: "
+                              f"{', '.join(self.table) or '(none registered)'}")
+        return item.run(args)
 
 
-def listing() -> str:
-    """One line per experiment: name, what it reproduces, what it does."""
-    rows = [(e.name, e.seed, e.help) for e in registry.EXPERIMENTS.values()]
-    width = max((len(r[0]) for r in rows), default=0)
-    return "\n".join(f"{n:<{width}}  {s + ': ' if s else ''}{h}" for n, s, h in rows)
-
-
-def main(args: argparse.Namespace) -> int:
-    """Run the experiment named on the command line, or list them."""
-    name = getattr(args, "experiment", None)
-    if getattr(args, "list", False) or name is None:
-        print(listing())
-        if name is None and not getattr(args, "list", False):
-            print("\nrun one with: testcell experiment NAME [options]  (NAME --help for its "
-                  "options)")
-        return 0
-    exp = registry.EXPERIMENTS.get(name)
-    if exp is None:
-        raise ConfigError(f"experiment {name!r} is unknown; choose one of: "
-                          f"{', '.join(registry.EXPERIMENTS)}")
-    return exp.run(args)
+EXPERIMENT_COMMAND = Commands("experiment", "experiment", registry.EXPERIMENTS)
+DESIGN_COMMAND = Commands("design", "design tool", registry.DESIGNS)
+add_arguments = EXPERIMENT_COMMAND.add_arguments
+listing = EXPERIMENT_COMMAND.listing
+main = EXPERIMENT_COMMAND.main

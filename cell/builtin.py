@@ -6,6 +6,7 @@ from . import registry
 from .controller import controllers
 from .estimators.adaptive import adaptive_filters
 from .estimators.filters import native_filters
+from .estimators.twc import twc_observers
 from .experiments.closed_loop import CLOSED_LOOP
 from .plant.profiles import LARGE_DIESEL
 from .plant.si_turbo import SI_TURBO
@@ -31,6 +32,8 @@ registry.block_set(BlockSet("seed004-filters", lambda s: [*native_filters(), *ad
 registry.block_set(BlockSet("seed004-controllers",
                             lambda s: [] if s.no_controllers else controllers("kalman"),
                             engines=("large-diesel",)))
+
+registry.block_set(BlockSet("seed000-twc", twc_observers, engines=("si-turbo",)))
 
 # experiments
 registry.experiment(CLOSED_LOOP)

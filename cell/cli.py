@@ -199,6 +199,9 @@ def _common_runtime_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dbc", action="append", default=None, metavar="PATH",
                    help="add a DBC file, or a folder of them, to the cell's own dbc/*.dbc "
                         "(repeatable): your ECU and DAQ frames decode into channels")
+    p.add_argument("--osc-init", type=float, default=None, metavar="X",
+                   help="initial OSC guess of the catalyst observer twc, normalised to fresh "
+                        "(default 1)")
 
 
 def build_parser() -> argparse.ArgumentParser:

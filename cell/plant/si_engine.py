@@ -115,8 +115,20 @@ class SIEngineParams:
     """Overrun time before the fuel is cut, s."""
     purge_lambda: float = 0.93
     """λ of the rich purge after a fuel cut (the ECU empties the catalyst it saturated)."""
-    purge_time: float = 2.5
-    """Duration of the rich purge, s."""
+    purge_mass: float = 2.0e-3
+    """Size of the rich purge, kg: it lasts until ∫ ṁ_exh (1 - λ) dt reaches this, which
+    takes away 70 % of a fresh catalyst's oxygen (0.0094 of 0.0134 mol O₂ at 13 % carbon);
+    an aged catalyst breaks through rich before the purge ends."""
+    purge_time_max: float = 10.0
+    """Longest purge, s (also the purge's length when no exhaust mass flow is known)."""
+    # -- two-sensor control --------------------------------------------------------------
+    lambda_target: float = 0.998
+    """λ target of the upstream loop: slightly rich, as ECUs run for NOx conversion."""
+    trim_gain: float = 0.2
+    """Downstream trim, 1/s: the target moves by this x (1 - λ_mid) per second (λ_mid the
+    catalyst's outlet λ), lean after a rich breakthrough and rich after a lean one."""
+    trim_limit: float = 0.02
+    """Largest trim of the target."""
 
 
 class SICycle:
@@ -285,10 +297,12 @@ class SIEngine(Plant):
     ``x_tr`` follows ``-transient_gain`` x the rate of change of load (tip-in rich, tip-out
     lean) and decays with ``transient_tau``. On overrun above ``fuel_cut_speed`` the fuel
     is cut (λ = :data:`LAMBDA_FUEL_CUT`, ``FUEL_CUT_TRUE`` = 1); when it resumes, a rich
-    purge at ``purge_lambda`` for ``purge_time`` follows, and the controller restarts.
+    purge at ``purge_lambda`` follows until ``purge_mass`` has passed, and the controller
+    restarts. The upstream loop's target is ``lambda_target`` plus a slow downstream trim
+    on the catalyst's outlet λ (input ``LAMBDA_MID_TRUE``, when the profile has a catalyst).
     """
 
-    inputs = ()
+    inputs = ("EXH_MASS_FLOW_TRUE", "LAMBDA_MID_TRUE")
     outputs = ("ENGINE_SPEED", "SI_LOAD_DEMAND", "LAMBDA_ENGINE_TRUE", "FUEL_CUT_TRUE")
 
     def __init__(self, cycle: str | SICycle = "ftp", params: SIEngineParams | None = None,
@@ -303,7 +317,9 @@ class SIEngine(Plant):
         self.rich = False  # the controller's present direction
         self.fuel_cut = False
         self._overrun = 0.0
-        self._purge = 0.0
+        self._purge = 0.0  # purge mass still to go, kg
+        self._purge_t = 0.0
+        self.trim = 0.0
         self._a_tr = lag_factor(p.period, p.transient_tau)
         self._hist = [1.0] * 256  # engine-out λ history, for the transport delay
         self._hi = 0
@@ -324,7 +340,8 @@ class SIEngine(Plant):
         if self.fuel_cut:
             if self.load > 0.0 or self.speed < p.fuel_cut_resume_speed:
                 self.fuel_cut = False
-                self._purge = p.purge_time
+                self._purge = p.purge_mass
+                self._purge_t = 0.0
                 self.corr = 0.0
         elif self._overrun >= p.fuel_cut_delay:
             self.fuel_cut = True
@@ -336,10 +353,19 @@ class SIEngine(Plant):
         if self.fuel_cut:
             lam = LAMBDA_FUEL_CUT
         elif self._purge > 0.0:
-            self._purge -= dt
+            mdot = u.get("EXH_MASS_FLOW_TRUE")
+            self._purge_t += dt
+            if mdot is None or self._purge_t >= p.purge_time_max:
+                self._purge = 0.0 if self._purge_t >= p.purge_time_max else self._purge
+            else:
+                self._purge -= mdot * (1.0 - p.purge_lambda) * dt
             lam = p.purge_lambda
         else:
-            lean = sensed > 1.0
+            lam_mid = u.get("LAMBDA_MID_TRUE")
+            if lam_mid is not None:  # the downstream trim
+                self.trim += p.trim_gain * (1.0 - min(lam_mid, 1.5)) * dt
+                self.trim = min(max(self.trim, -p.trim_limit), p.trim_limit)
+            lean = sensed > p.lambda_target + self.trim
             if lean != self.rich:  # switch: the jump
                 self.rich = lean
                 jump = 0.5 * p.lambda_amplitude

@@ -87,7 +87,8 @@ def test_fuel_cut_on_overrun_then_a_rich_purge():
     c = cycle([(0, 2000, 0.3), (5, 2000, 0.3), (5.1, 2000, 0.0), (10, 2000, 0.0),
                (10.1, 2000, 0.3), (20, 2000, 0.3)], 20.0)
     plant = si_turbo(c)
-    names = ["LAMBDA_ENGINE_TRUE", "FUEL_CUT_TRUE", "FUEL_RATE", "ENGINE_TORQUE"]
+    names = ["LAMBDA_ENGINE_TRUE", "FUEL_CUT_TRUE", "FUEL_RATE", "ENGINE_TORQUE",
+             "EXH_MASS_FLOW_TRUE"]
     r = run(plant, 20.0, names)
     t = r["t"]
     cut = r["FUEL_CUT_TRUE"] == 1.0
@@ -95,8 +96,15 @@ def test_fuel_cut_on_overrun_then_a_rich_purge():
     assert t[cut].max() == pytest.approx(10.0, abs=0.05)  # load returns after 10 s
     assert np.all(r["LAMBDA_ENGINE_TRUE"][cut] == LAMBDA_FUEL_CUT)
     assert np.all(r["FUEL_RATE"][cut] == 0.0) and np.all(r["ENGINE_TORQUE"][cut] == 0.0)
-    purge = (t > 10.2) & (t < 10.1 + p.purge_time - 0.1)
-    assert np.all(r["LAMBDA_ENGINE_TRUE"][purge] == p.purge_lambda)
+    # the purge: rich until the exhaust mass times the λ deficit reaches purge_mass
+    lam = r["LAMBDA_ENGINE_TRUE"]
+    purge = (t > 10.0) & (lam == p.purge_lambda)
+    start, end = t[purge].min(), t[purge].max()
+    assert start == pytest.approx(10.0, abs=0.05)
+    assert np.all(purge[(t >= start) & (t <= end)])  # one unbroken purge
+    deficit = np.sum(r["EXH_MASS_FLOW_TRUE"][purge] * (1 - p.purge_lambda)) * plant.dt
+    assert deficit == pytest.approx(p.purge_mass, rel=0.02)
+    assert 1.0 < end - start < p.purge_time_max
 
 
 def test_breathing_gives_the_hand_computed_flow_and_temperature():
@@ -128,6 +136,7 @@ def test_sim_writes_the_si_turbo_frames_at_their_cycle_times(tmp_path):
     names = defaultdict(int)
     for msg in frames:
         names[db.decode(msg)[0].name] += 1
-    expected = {"ENGINE_1": 100, "SI_ENGINE_2": 100, "TRUTH_SI_ENGINE": 200}
+    expected = {"ENGINE_1": 100, "SI_ENGINE_2": 100, "TRUTH_SI_ENGINE": 200, "TWC_LAMBDA": 200,
+                "TWC_FLOW": 200, "TWC_TEMP": 20, "TRUTH_TWC_SOX": 20, "TRUTH_TWC": 20}
     assert dict(names) == expected
     assert SIEngine("steady").speed == 2000.0

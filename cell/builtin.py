@@ -8,6 +8,7 @@ from .estimators.adaptive import adaptive_filters
 from .estimators.filters import native_filters
 from .estimators.twc import twc_observers
 from .experiments.closed_loop import CLOSED_LOOP
+from .experiments.twc import TWC
 from .plant.profiles import LARGE_DIESEL
 from .plant.si_turbo import SI_TURBO
 from .registry import BlockFamily, BlockSet
@@ -37,3 +38,4 @@ registry.block_set(BlockSet("seed000-twc", twc_observers, engines=("si-turbo",))
 
 # experiments
 registry.experiment(CLOSED_LOOP)
+registry.experiment(TWC)

@@ -312,10 +312,12 @@ def _figures(rec: Recording, main: Estimate, by_init: dict[float, Estimate],
 # -- the experiment ------------------------------------------------------------------------------
 def run(osc_inits=(0.5, 1.0, 1.5), q4s=(Q4_DEFAULT, 10 * Q4_DEFAULT), osc_true: float = 1.0,
         q4_init: float = 0.5, duration: float | None = None, seed: int = 0,
-        out: Path | None = None, progress: bool = False
+        out: Path | None = None, progress: bool = False, kinetics: TWCKinetics | None = None
         ) -> tuple[Recording, list[CaseResult], dict[str, Estimate]]:
     """Record one drive, run every case over it, score them and (with ``out``) draw the
-    figures. Returns the recording, the results and the estimates by case name."""
+    figures. ``kinetics`` is the observers' model (default
+    :data:`~cell.estimators.twc.MODEL_KINETICS`). Returns the recording, the results and the
+    estimates by case name."""
     from tqdm import tqdm
 
     rec = record(osc_true, duration, seed=seed, progress=progress)
@@ -327,7 +329,7 @@ def run(osc_inits=(0.5, 1.0, 1.5), q4s=(Q4_DEFAULT, 10 * Q4_DEFAULT), osc_true: 
     results, estimates = [], {}
     for name, g, q in tqdm(cases, unit="case", desc="observers", disable=not progress):
         if (g, q) not in done:
-            done[(g, q)] = observe(rec, osc_init=g, Q=(*q_phi, q))
+            done[(g, q)] = observe(rec, osc_init=g, Q=(*q_phi, q), kinetics=kinetics)
         estimates[name] = done[(g, q)]
         results.append(score(rec, done[(g, q)], name, g, q, naive))
     if out is not None:
@@ -371,7 +373,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder for the PNGs and twc_cases.json (default ./experiment-twc)")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object per case on stdout (table on stderr)")
+    parser.add_argument("--mismatch", default=None, metavar="NAME=FACTOR,...",
+                        help="the observer model's kinetics as factors of the plant's, e.g. "
+                             "A1=0.8,A2=1.2,y_c=1.03 (default: the shipped model, "
+                             "A1=0.9,A2=1.1,y_c=1.02; A1=1 for no mismatch)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+#: Model constants ``--mismatch`` may scale.
+MISMATCH_KEYS = ("A1", "E1", "A2", "E2", "dG1", "dG2", "y_c", "osc_fresh")
+
+
+def parse_mismatch(text: str) -> TWCKinetics:
+    """``A1=0.8,A2=1.2`` -> the plant's :class:`TWCKinetics` with those factors applied."""
+    factors: dict[str, float] = {}
+    for part in text.split(","):
+        key, sep, value = part.partition("=")
+        key = key.strip()
+        if not sep or key not in MISMATCH_KEYS:
+            raise ConfigError(f"--mismatch {text!r}: {part.strip()!r} is not NAME=FACTOR with NAME "
+                              f"one of {', '.join(MISMATCH_KEYS)}")
+        try:
+            f = float(value)
+        except ValueError:
+            raise ConfigError(f"--mismatch {text!r}: {value.strip()!r} is not a number") from None
+        if not (math.isfinite(f) and 0.1 <= f <= 10.0):
+            raise ConfigError(f"--mismatch {text!r}: a factor must be in [0.1, 10], got {f:g}")
+        factors[key] = f
+    return TWCKinetics().scaled(**factors)
 
 
 def _fmt(v: float | None, spec: str = ".0f") -> str:
@@ -388,9 +417,10 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError(f"--duration must be >= 10 s, got {args.duration}")
     if "ftp" not in SI_CYCLES:  # pragma: no cover - the cycle is the cell's own
         raise ConfigError("the ftp duty cycle is missing")
+    kinetics = parse_mismatch(args.mismatch) if args.mismatch else None
     out = Path(args.out)
     _, results, _ = run(inits, q4s, args.osc_true, args.q4_init, args.duration, args.seed, out,
-                        progress=not args.quiet)
+                        progress=not args.quiet, kinetics=kinetics)
     table = sys.stderr if args.json else sys.stdout
     head = (f"{'case':<16} {'OSC true':>8} {'conv. s':>8} {'reach s':>8} {'ripple':>7} "
             f"{'OSC end':>8} {'SOX RMSE':>9} {'naive':>7} {'resets':>6}")

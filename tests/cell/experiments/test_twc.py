@@ -112,10 +112,26 @@ def test_offline_observation_is_what_the_runtime_block_computes():
     np.testing.assert_allclose(offline.sox[ran], rec.truth["SOX_EST"][ran], rtol=0, atol=1e-12)
 
 
+def test_the_model_mismatch_is_configurable(fresh):
+    from cell.experiments.twc import parse_mismatch
+    from cell.plant.twc_model import TWCKinetics
+
+    k = parse_mismatch("A1=0.5,y_c=1.1")
+    assert k.A1 == 0.5 * TWCKinetics().A1 and k.y_c == pytest.approx(1.1 * TWCKinetics().y_c)
+    exact = observe(fresh, osc_init=1.0, kinetics=parse_mismatch("A1=1"))
+    assert exact.block.kinetics == TWCKinetics()
+    wrong = observe(fresh, osc_init=1.0, kinetics=parse_mismatch("y_c=1.3"))
+    # 30 % too much carbon in the model's feed gas: it sees storage fill and empty faster,
+    # so it needs a larger capacity to explain the same breakthroughs
+    late = fresh.t >= 500.0
+    assert np.mean(wrong.osc[late]) > np.mean(exact.osc[late]) + 0.1
+
+
 def test_experiment_command_writes_figures_table_and_json(tmp_path, capsys):
     out = tmp_path / "twc"
     code = cli.main(["experiment", "twc", "--duration", "60", "--osc-init", "1.0,1.5",
-                     "--q4", "2e-5,2e-4", "--out", str(out), "--json", "--quiet"])
+                     "--q4", "2e-5,2e-4", "--out", str(out), "--json", "--quiet",
+                     "--mismatch", "A1=0.8,A2=1.2"])
     assert code == 0
     captured = capsys.readouterr()
     lines = [json.loads(x) for x in captured.out.splitlines()]
@@ -132,6 +148,8 @@ def test_experiment_command_writes_figures_table_and_json(tmp_path, capsys):
     (["--q4", "-1"], "--q4 '-1': each value must be in (0, 1]"),
     (["--osc-true", "3"], "--osc-true must be in [0.05, 2]"),
     (["--duration", "1"], "--duration must be >= 10 s"),
+    (["--mismatch", "A3=2"], "'A3=2' is not NAME=FACTOR with NAME one of A1, E1"),
+    (["--mismatch", "A1=0"], "a factor must be in [0.1, 10], got 0"),
 ])
 def test_experiment_refuses_bad_options(argv, needle, capsys, tmp_path):
     assert cli.main(["experiment", "twc", *argv, "--out", str(tmp_path), "--quiet"]) == 2

@@ -234,16 +234,18 @@ def predict(x: list[float], op: Operating, dt: float, max_step: float, bounds: t
         h = min(max_step, left, max(1.0 / stiff if stiff > 0 else left, h_min))
         if left - h < 1e-9:
             h = left
-        # Phi <- (I + h A) Phi; A's first three rows only (OSC has no dynamics)
-        new = []
-        for i in range(3):
-            Ai = A[i]
-            row = []
-            for j in range(4):
-                row.append(Phi[i][j] + h * (Ai[0] * Phi[0][j] + Ai[1] * Phi[1][j]
-                                            + Ai[2] * Phi[2][j] + Ai[3] * Phi[3][j]))
-            new.append(row)
-        Phi = [*new, Phi[3]]
+        # Phi <- (I + h A) Phi. A cell depends only on the cells upstream and on OSC, so the
+        # φ block of A and Phi is lower triangular, and OSC's row stays e4
+        (a00, _, _, a03), (a10, a11, _, a13), (a20, a21, a22, a23) = A
+        (p00, _, _, p03), (p10, p11, _, p13), (p20, p21, p22, p23) = Phi[0], Phi[1], Phi[2]
+        Phi = [
+            [p00 + h * a00 * p00, 0.0, 0.0, p03 + h * (a00 * p03 + a03)],
+            [p10 + h * (a10 * p00 + a11 * p10), p11 + h * a11 * p11, 0.0,
+             p13 + h * (a10 * p03 + a11 * p13 + a13)],
+            [p20 + h * (a20 * p00 + a21 * p10 + a22 * p20), p21 + h * (a21 * p11 + a22 * p21),
+             p22 + h * a22 * p22, p23 + h * (a20 * p03 + a21 * p13 + a22 * p23 + a23)],
+            Phi[3],
+        ]
         for i in range(3):
             x[i] = min(max(x[i] + h * f[i], 0.0), 1.0)
         x[3] = min(max(x[3], lo), hi)

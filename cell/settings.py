@@ -248,7 +248,10 @@ class Settings:
 
         engine = self.engine or registry.DEFAULT_ENGINE
         profile = registry.engine_profile(engine)
-        return replace(self, engine=engine, duty=self.duty or profile.default_duty)
+        resolved = replace(self, engine=engine, duty=self.duty or profile.default_duty)
+        if self.engine is None:
+            resolved.check()  # an engine's own option given without --engine: the default's?
+        return resolved
 
     def sim_argv(self, bus: str) -> list[str]:
         """``testcell sim`` arguments that hand the simulator every simulator setting."""

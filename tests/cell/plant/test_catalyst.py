@@ -143,3 +143,22 @@ def test_a_scenario_frame_steps_osc_in_the_simulator():
     assert sim.plant["OSC_TRUE"] == pytest.approx(0.45)
     sim.step()
     assert sim.plant["OSC_TRUE"] == pytest.approx(0.45)  # holds until the next command
+
+
+def test_osc_options_on_the_command_line(tmp_path, capsys):
+    from cell import cli
+
+    log = tmp_path / "aged.log"
+    assert cli.main(["sim", "--engine", "si-turbo", "--osc", "0.6", "--duration", "1",
+                     "--out", str(log)]) == 0
+    import can
+
+    db = load()
+    osc = [db.decode(m)[1]["OSC_TRUE"] for m in can.LogReader(str(log))
+           if db.decode(m)[0].name == "TRUTH_TWC"]
+    assert osc and all(v == pytest.approx(0.6) for v in osc)
+    capsys.readouterr()
+    assert cli.main(["sim", "--engine", "si-turbo", "--osc", "3", "--out", str(log)]) == 2
+    assert "--osc must be in [0.05, 2]" in capsys.readouterr().err
+    assert cli.main(["sim", "--osc", "0.6", "--out", str(log)]) == 2
+    assert "--osc is an option of si-turbo, not of large-diesel" in capsys.readouterr().err

@@ -277,8 +277,21 @@ class TWCObserver(Block):
         Initial φ of every cell.
     max_step, max_gap:
         Longest integration sub-step, and longest gap between ticks predicted over, s.
+    osc_bounds:
+        OSC is kept within these (normalised).
     nis_gate, nis_window:
         Reset after ``nis_window`` consecutive updates above the ``nis_gate`` quantile.
+    blank_lambda, blank_hold:
+        No update while λ_pre or λ_mid is above ``blank_lambda`` (fuel cut) and for
+        ``blank_hold`` s after.
+    adapt_temp:
+        Below this T_CAT (°C), OSC is held.
+    tau_lambda, lead, input_at_end:
+        The λ sensors' time constant, s (0: none); whether λ_pre's lag is undone; whether a
+        tick's inputs drive the interval before it (see the module notes).
+    innovation_limit, iterations:
+        The robust update's bound, in standard deviations (0: none), and the iterations of
+        the iterated update (1: a plain EKF update).
 
     Tunable (``PATCH /observers/twc``, all or nothing): ``Q``, ``R``, ``P0``, ``osc_init``,
     ``phi_init``, ``nis_gate``, ``nis_window``. New Q/R act at the next tick and keep the

@@ -8,12 +8,16 @@ plant               consumes                                    produces
 ``SIEngine``        (the duty cycle)                            ENGINE_SPEED, SI_LOAD_DEMAND,
                                                                 LAMBDA_ENGINE_TRUE,
                                                                 FUEL_CUT_TRUE
-``SIBreathing``     ENGINE_SPEED, SI_LOAD_DEMAND,               EXH_MASS_FLOW_TRUE, T_EXH_TRUE,
-                    LAMBDA_ENGINE_TRUE                          ENGINE_TORQUE, FUEL_RATE,
-                                                                ENGINE_POWER
+``SIAirPath``       ENGINE_SPEED, SI_LOAD_DEMAND,               EXH_MASS_FLOW_TRUE, T_EXH_TRUE,
+(seed 003)          LAMBDA_ENGINE_TRUE                          ENGINE_TORQUE, FUEL_RATE,
+                                                                ENGINE_POWER, the air-path
+                                                                sensors and truth
 ==================  ==========================================  ==============================
 
-Its frames are in ``dbc/si_turbo.dbc`` (and ``ENGINE_1`` of ``dbc/testcell.dbc``).
+Its frames are in ``dbc/si_turbo.dbc``, ``dbc/si_airpath.dbc`` (and ``ENGINE_1`` of
+``dbc/testcell.dbc``). The mean-value air path (:class:`~cell.plant.si_airpath.SIAirPath`)
+replaced issue 8's simple :class:`~cell.plant.si_engine.SIBreathing`, which stays in
+``si_engine`` as the reference the air path's exhaust flow is checked against.
 """
 
 from __future__ import annotations
@@ -23,7 +27,8 @@ from ..errors import ConfigError
 from ..settings import Settings
 from .base import Plant
 from .composition import Composition
-from .si_engine import SI_CYCLES, BreathingParams, SIBreathing, SICycle, SIEngine, SIEngineParams
+from .si_airpath import SIAirPath, SIAirPathParams
+from .si_engine import SI_CYCLES, SICycle, SIEngine, SIEngineParams
 
 ENGINE_NAME = "si-turbo"
 
@@ -32,7 +37,7 @@ def si_turbo(
     cycle: str | SICycle = "ftp",
     seed: int = 0,
     engine: SIEngineParams | None = None,
-    breathing: BreathingParams | None = None,
+    airpath: SIAirPathParams | None = None,
 ) -> Composition:
     """The turbocharged SI engine on its duty cycle.
 
@@ -42,11 +47,11 @@ def si_turbo(
         Duty cycle name (:data:`~cell.plant.si_engine.SI_CYCLES`) or an :class:`SICycle`.
     seed:
         Noise seed of the plants with sensors.
-    engine, breathing:
+    engine, airpath:
         The plants' constants.
     """
     eng = SIEngine(cycle, engine)
-    plants: list[Plant] = [eng, SIBreathing(breathing)]
+    plants: list[Plant] = [eng, SIAirPath(airpath, seed=seed)]
     about = {"duty": eng.cycle.name, "seed": seed}
     return Composition(ENGINE_NAME, plants, eng.cycle.duration, about)
 

@@ -5,7 +5,10 @@ from __future__ import annotations
 from . import registry
 from .controller import controllers
 from .estimators.adaptive import adaptive_filters
+from .estimators.airpath import AirPathObserver
 from .estimators.filters import native_filters
+from .experiments.airpath import AIRPATH
+from .experiments.airpath_design import AIRPATH_DESIGN
 from .experiments.closed_loop import CLOSED_LOOP
 from .plant.profiles import LARGE_DIESEL
 from .plant.si_turbo import SI_TURBO
@@ -31,6 +34,12 @@ registry.block_set(BlockSet("seed004-filters", lambda s: [*native_filters(), *ad
 registry.block_set(BlockSet("seed004-controllers",
                             lambda s: [] if s.no_controllers else controllers("kalman"),
                             engines=("large-diesel",)))
+# seed 003's constant-gain EKF of the SI air path, on the shipped gain table
+registry.block_set(BlockSet("seed003-airpath", lambda s: [AirPathObserver()], engines=("si-turbo",)))
 
 # experiments
 registry.experiment(CLOSED_LOOP)
+registry.experiment(AIRPATH)
+
+# design tools
+registry.design(AIRPATH_DESIGN)

@@ -287,9 +287,10 @@ def throttle_steps_cycle(hold: float = 8.0) -> SICycle:
                   "throttle steps at 1800 rpm (seed 003, Figures 1, 5, 6)")
 
 
-def operating_points_cycle(hold: float = 6.0) -> SICycle:
+def operating_points_cycle(hold: float = 10.0) -> SICycle:
     """Stationary operating points for the air-path observer's design (``testcell design
-    airpath``): every speed x load of the grid, held ``hold`` s."""
+    airpath``): every speed x load of the grid, held ``hold`` s (the turbo settles slowly at
+    low load: its slowest pole is near -0.2 /s, seed 003 §3.1.1)."""
     pts = [(s, ld) for s in OPERATING_SPEEDS for ld in OPERATING_LOADS]
     return _holds("operating-points", pts, hold,
                   "stationary speed x load grid for the air-path gain table (seed 003, §3.1)")

@@ -40,7 +40,7 @@ def test_restriction_flow_reverses_with_the_pressure_ratio():
 def test_adiabatic_volume_conserves_mass_and_energy():
     # an independent form: m = pV/(RT), U = m cv T = pV/(gamma-1)
     p, T, V, R, g = 80e3, 320.0, 3e-3, 287.0, 1.4
-    cv, cp = R / (g - 1), R / (g - 1) + R
+    cp = R / (g - 1) + R
     w_in, T_in, w_out, q = 0.05, 310.0, 0.04, 50.0
     dp, dT = ap.adiabatic_volume(p, T, V, w_in, T_in, w_out, q)
     m = p * V / (R * T)

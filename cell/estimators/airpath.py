@@ -128,6 +128,8 @@ class TablePoint:
     """Measurement noise per channel (SI units²): stationary variance with a floor."""
     K: dict[str, list[list[float]]] = field(default_factory=dict)
     """Gains of the default feedback set, ``"plain"`` (5 x m) and ``"augmented"`` (6 x m)."""
+    window: list[float] = field(default_factory=list)
+    """Log times (s) of the stationary segment it was designed from."""
 
     @property
     def p_im(self) -> float:

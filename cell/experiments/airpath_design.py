@@ -158,7 +158,8 @@ def design_point(seg: Segment, params: SIAirPathParams = MODEL_PARAMS) -> TableP
     R = {name: max(seg.var[name] * scale * scale, R_FLOOR[name])
          for name, (_, scale, _) in MEASUREMENTS.items()}
     return TablePoint(speed=seg.speed, load=seg.load, u=u, x=xa.tolist(),
-                      x_meas={k: m[k] for k in MEASUREMENTS}, A=A.tolist(), Q=Q, R=R)
+                      x_meas={k: m[k] for k in MEASUREMENTS}, A=A.tolist(), Q=Q, R=R,
+                      window=[seg.t0, seg.t1])
 
 
 def design(segments: list[Segment], dt: float = 0.01, params: SIAirPathParams = MODEL_PARAMS,

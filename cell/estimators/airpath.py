@@ -293,6 +293,7 @@ class AirPathObserver(Block):
         }
         self._cache: dict[tuple, tuple[list[np.ndarray], list[np.ndarray]]] = {}
         self._J_at: tuple | None = None
+        self._near: tuple[float, float, int] | None = None
         self._J_dt, self._J_n, self.refreshes = 0.0, 0, 0
         self._apply(self.validate({"augmentation": int(augmentation), "feedback": list(feedback)}))
 
@@ -327,6 +328,15 @@ class AirPathObserver(Block):
     def reset(self) -> None:
         self.x = None
         self._t = None
+
+    def _nearest(self, speed: float, p_im: float) -> int:
+        """The table point nearest to (speed, p_im), looked up again only when either has moved
+        by more than a twentieth of its scheduling scale since the last look-up."""
+        last = self._near
+        if (last is None or abs(speed - last[0]) > SCHEDULE_SCALE[0] / 20
+                or abs(p_im - last[1]) > SCHEDULE_SCALE[1] / 20):
+            last = self._near = (speed, p_im, self.table.nearest(speed, p_im))
+        return last[2]
 
     def _w_step(self, t: float, dt: float) -> np.ndarray:
         r""":math:`(I - \Delta t J)^{-1}\Delta t`, with :math:`J` refreshed when the point moved."""
@@ -363,8 +373,8 @@ class AirPathObserver(Block):
                 self.x = self._start(u, inputs)
             dt = None
         else:
-            dt = t - self._t
-        i = self.table.nearest(u[2], float(self.x[1]))
+            dt = round(t - self._t, 9)  # tick periods from bus times differ in the last bits
+        i = self._nearest(u[2], float(self.x[1]))
         if dt is not None:  # predict over the tick with the previous input held
             self.x = self.x + self._w_step(t, dt) @ np.array(airpath_rhs(t, self.x, self._u, p))
         _, K = self._matrices(self.table.dt if dt is None else dt, bool(self.augmentation),

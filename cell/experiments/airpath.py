@@ -355,7 +355,7 @@ def plot_figure3(path: Path, table: GainTable) -> Path:
     w = np.array([flows(p.x, p.u, MODEL_PARAMS).w_ac for p in table.points])
     K = np.array([p.K["plain"] for p in table.points])  # (points, 5, 2): feedback P_IC, P_IM
     speed = np.array([p.speed for p in table.points])
-    fig, ax = plt.subplots(2, 2, figsize=(10, 6.5))
+    fig, ax = plt.subplots(2, 2, figsize=(10, 7), constrained_layout=True)
     panels = ((0, 0, "p_ic from measured p_ic [-]"), (1, 1, "p_im from measured p_im [-]"),
               (1, 0, "p_im from measured p_ic [-]"), (4, 0, "ω_tc from measured p_ic [rad/s per Pa]"))
     for k, (row, col, title) in enumerate(panels):

@@ -127,7 +127,8 @@ class TablePoint:
     R: dict[str, float]
     """Measurement noise per channel (SI units²): stationary variance with a floor."""
     K: dict[str, list[list[float]]] = field(default_factory=dict)
-    """Gains of the default feedback set, ``"plain"`` (5 x m) and ``"augmented"`` (6 x m)."""
+    """Gains of the default feedback set, ``"plain"`` (5 x m) and ``"augmented"`` (6 x m), at
+    the table's ``dt``; ``"plain@0.02"`` etc. at other tick periods."""
     window: list[float] = field(default_factory=list)
     """Log times (s) of the stationary segment it was designed from."""
 
@@ -153,8 +154,9 @@ class GainTable:
         ``dt`` (default the table's): stored ones when they match, else solved now."""
         dt = self.dt if dt is None else dt
         key = "augmented" if augmented else "plain"
-        if tuple(feedback) == tuple(self.feedback) and abs(dt - self.dt) < 1e-9 and all(
-                key in pt.K for pt in self.points):
+        if abs(dt - self.dt) >= 1e-9:
+            key = f"{key}@{dt:g}"
+        if tuple(feedback) == tuple(self.feedback) and all(key in pt.K for pt in self.points):
             return [np.array(pt.K[key]) for pt in self.points]
         return [self.solve(pt, feedback, augmented, dt)[0] for pt in self.points]
 
@@ -169,11 +171,16 @@ class GainTable:
         R = np.array([pt.R[m] for m in feedback])
         return discrete_gain(A, Q, R, [MEASUREMENTS[m][0] for m in feedback], dt)
 
-    def fill_gains(self) -> None:
-        """Store the gains of the default feedback set at the table's ``dt``."""
+    def fill_gains(self, also: Sequence[float] = (0.02,)) -> None:
+        """Store the gains of the default feedback set at the table's ``dt`` (keys ``plain``,
+        ``augmented``) and at the tick periods ``also`` (``plain@0.02``, ...: 0.02 s is the
+        runtime's default FAS), so that the runtime solves nothing at start-up."""
         for pt in self.points:
-            pt.K = {"plain": self.solve(pt, self.feedback, False, self.dt)[0].tolist(),
-                    "augmented": self.solve(pt, self.feedback, True, self.dt)[0].tolist()}
+            pt.K = {}
+            for dt in (self.dt, *also):
+                suffix = "" if abs(dt - self.dt) < 1e-9 else f"@{dt:g}"
+                for key, aug in (("plain", False), ("augmented", True)):
+                    pt.K[key + suffix] = self.solve(pt, self.feedback, aug, dt)[0].tolist()
 
     def nearest(self, speed: float, p_im: float) -> int:
         """Index of the point nearest to (engine speed rpm, p_im Pa) (seed 003, §3.4.2)."""
@@ -262,7 +269,9 @@ class AirPathObserver(Block):
     Tunable (``GET``/``PATCH /observers/airpath``): ``augmentation`` (0/1, ΔC_ηvol on or off;
     switching restarts the estimate at the next tick) and ``feedback`` (the measurements fed
     back, a list out of P_IC, P_IM, T_IM, N_TC; the gains of a new set are solved from the
-    table's A_i, Q_i, R_i at once).
+    table's A_i, Q_i, R_i at once). ``T_IM`` is compared with the state directly: the
+    thermocouple's lag is not modelled (seed 003 §3.2 suggests adding a sensor state), so it
+    is left out of the default set, as in the paper.
 
     Parameters
     ----------

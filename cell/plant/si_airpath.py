@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -197,9 +198,9 @@ MODEL_PARAMS = replace(PLANT_PARAMS, c_eta_vol=0.88, eta_vol_speed_shape=0.0,
 
 
 # -- the model (seed 003, eqs. 1-2) ------------------------------------------------------------
-@dataclass(frozen=True)
-class Flows:
-    """The algebraic quantities of the air path at one state and input."""
+class Flows(NamedTuple):
+    """The algebraic quantities of the air path at one state and input (a named tuple: the
+    model evaluates it at every step)."""
 
     w_c: float
     w_th: float

@@ -235,3 +235,53 @@ __all__ = ["CP_AIR", "CV_AIR", "GAMMA_AIR", "R_AIR", "adiabatic_volume", "compre
            "engine_air_flow", "flow_function", "incompressible_drop", "intercooler_temperature",
            "isothermal_volume", "restriction_flow", "shaft_acceleration", "throttle_area",
            "turbine_flow", "turbine_power", "volumetric_efficiency"]
+
+
+# -- the diesel air path's additions (seed 002, Appendix A; issue 11) -------------------------
+#: Gas constant of exhaust gas, J/(kg K).
+R_EXH = 286.0
+#: Ratio of specific heats of exhaust gas.
+GAMMA_EXH = 1.3
+#: Specific heat of exhaust gas at constant pressure, J/(kg K).
+CP_EXH = 1150.0
+
+
+def compressor_head(pr: float, omega: float, radius: float, T_in: float, cp: float = CP_AIR,
+                    gamma: float = GAMMA_AIR) -> float:
+    r"""Energy transfer (head) coefficient of a compressor (Wahlström & Eriksson 2006):
+
+    .. math:: \Psi_c = \frac{2 c_p T_{in} (\Pi^{(\gamma-1)/\gamma} - 1)}{U^2}, \qquad U = r\,\omega
+
+    :math:`U` is the blade tip speed (floored at 1 m/s).
+    """
+    u = max(radius * omega, 1.0)
+    return 2.0 * cp * T_in * (max(pr, 1e-6) ** ((gamma - 1.0) / gamma) - 1.0) / (u * u)
+
+
+def compressor_map_flow(pr: float, omega: float, radius: float, psi_max: float, phi_max: float,
+                        p_in: float, T_in: float, R: float = R_AIR) -> float:
+    r"""Compressor mass flow from a head/flow-coefficient map (Wahlström & Eriksson 2006), kg/s.
+
+    The flow coefficient falls on a parabola in the head coefficient (a smooth variant of
+    W&E's ellipse that also holds for :math:`\Pi < 1`), zero beyond :math:`\Psi_{max}` (the
+    surge line):
+
+    .. math:: \Phi_c = \Phi_{max}(1 - s|s|), \quad s = \Psi_c/\Psi_{max}, \qquad
+              W_c = \Phi_c\, \rho_{in}\, \pi r^2 U
+    """
+    s = compressor_head(pr, omega, radius, T_in) / psi_max
+    phi = max(phi_max * (1.0 - s * abs(s)), 0.0)
+    return phi * p_in / (R * T_in) * math.pi * radius * radius * max(radius * omega, 1.0)
+
+
+def cylinder_flow(eta_vol: float, p_im: float, T_im: float, speed_rpm: float,
+                  displacement: float, R: float = R_AIR) -> float:
+    r"""Gas flow into the cylinders of a four-stroke diesel, kg/s (speed-density):
+
+    .. math:: W_{ei} = \frac{\eta_{vol}\, p_{im}\, N\, V_d}{120\, R\, T_{im}}
+    """
+    return eta_vol * p_im * speed_rpm * displacement / (120.0 * R * T_im)
+
+
+__all__ += ["CP_EXH", "GAMMA_EXH", "R_EXH", "compressor_head", "compressor_map_flow",
+            "cylinder_flow"]

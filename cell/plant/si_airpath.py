@@ -29,6 +29,10 @@ parameter                  engine (plant)      default model       effect
 ``turbine_efficiency``     0.66                0.68                N_TC, p_em
 =========================  ==================  ==================  =======================
 
+The exhaust manifold temperature drives the turbine; the gas reaching the catalyst
+(``T_EXH_TRUE``) has passed the turbine and the downpipe, whose walls lag it: it follows
+issue 8's catalyst-inlet map over this engine's relative charge, with a 3 s lag.
+
 The plant also holds the engine control unit that turns the duty cycle's load demand
 into throttle and wastegate positions (:func:`throttle_command`, :class:`BoostControl`),
 its actuators, and the sensors: ``P_IC`` (fast, white noise), ``P_IM`` (white noise plus
@@ -48,6 +52,10 @@ import numpy as np
 from ..errors import ConfigError
 from . import airpath_parts as ap
 from .base import Plant, lag_factor
+from .si_engine import steady_exhaust_temp
+
+#: λ above which the engine runs without fuel (issue 8's fuel cut: λ = 10 stands for air).
+FUEL_CUT_LAMBDA = 5.0
 
 RPM_PER_RAD_S = 30.0 / math.pi
 STATES = ("p_ic", "p_im", "T_im", "p_em", "omega_tc")
@@ -160,6 +168,11 @@ class SIAirPathParams:
     """Throttle actuator time constant, s (electronic throttle)."""
     tau_wastegate: float = 0.25
     """Wastegate actuator time constant, s (pneumatic)."""
+
+    # catalyst inlet (plant only)
+    tau_exh: float = 3.0
+    """Lag of the catalyst-inlet gas temperature, s: the turbine housing and downpipe walls
+    (as issue 8's breathing model)."""
 
     # sensors (plant only)
     period: float = 0.01
@@ -336,11 +349,12 @@ def steady_state(p: SIAirPathParams, u: Sequence[float], x0: Sequence[float] | N
 
 # -- the engine control unit -----------------------------------------------------------------
 def p_im_target(load: float, p: SIAirPathParams) -> float:
-    """Intake manifold pressure (Pa) the ECU aims at for a load demand 0..1: throttled up
-    to 0.97 bar at a load of 0.6, boosted linearly to ``p_im_max`` at full load."""
+    """Intake manifold pressure (Pa) the ECU aims at for a load demand 0..1: from 0.13 bar
+    on overrun (closed throttle) to 0.97 bar at a load of 0.6 throttled, boosted linearly to
+    ``p_im_max`` at full load."""
     ld = min(max(load, 0.0), 1.0)
     if ld <= 0.6:
-        return p.p_amb * (0.2 + 0.76 * ld / 0.6)
+        return p.p_amb * (0.13 + 0.83 * ld / 0.6)
     return p.p_amb * 0.96 + (ld - 0.6) / 0.4 * (p.p_im_max - p.p_amb * 0.96)
 
 
@@ -387,7 +401,7 @@ def engine_torque(f: Flows, x: Sequence[float], speed: float, lam: float,
                   p: SIAirPathParams) -> tuple[float, float]:
     """Brake torque (N m) and fuel flow (kg/s): gross indicated work of the fuel burnt,
     less pumping (p_em - p_im) and friction (FMEP)."""
-    fuel = 0.0 if lam > 5.0 else f.w_ac / (max(lam, 0.5) * p.afr_s)
+    fuel = 0.0 if lam >= FUEL_CUT_LAMBDA else f.w_ac / (max(lam, 0.5) * p.afr_s)
     burnt = min(fuel, f.w_ac / p.afr_s)  # rich: the excess fuel does no work
     omega = max(speed, 1.0) * math.pi / 30.0
     c0, c1, c2 = p.fmep
@@ -417,6 +431,7 @@ class SIAirPath(Plant):
 
     def __init__(self, params: SIAirPathParams | None = None, seed: int = 0,
                  name: str = "airpath") -> None:
+        self.T_cat_in = 0.0
         p = self.params = params if params is not None else PLANT_PARAMS
         if p.substeps < 1:
             raise ConfigError(f"plant {name}: substeps must be >= 1, got {p.substeps}")
@@ -425,6 +440,7 @@ class SIAirPath(Plant):
         self._a_th = lag_factor(p.period, p.tau_throttle)
         self._a_wg = lag_factor(p.period, p.tau_wastegate)
         self._a_T = lag_factor(p.period, p.tau_T_im_sensor)
+        self._a_exh = lag_factor(p.period, p.tau_exh)
         self._noise = np.zeros((0, 6))
         self._k_noise = 0
         self.crank_phase = 0.0
@@ -446,7 +462,18 @@ class SIAirPath(Plant):
         for _ in range(round(p.settle / p.period)):  # the ECU's loops settle
             self._advance(speed, load, lam)
         self.T_sensor = self.x[2]
+        self.T_cat_in = self._T_cat_in_target(speed, lam)
         self._update()
+
+    def _T_cat_in_target(self, speed: float, lam: float) -> float:
+        """Steady catalyst-inlet temperature, °C: issue 8's map
+        (:func:`~cell.plant.si_engine.steady_exhaust_temp`) over this engine's relative
+        charge (cylinder air over the swept volume at ambient density and η_vol 0.9), so that
+        the catalyst sees the temperatures it was built for."""
+        p = self.params
+        w_ac = flows(self.x, self._u, p).w_ac
+        swept = 0.9 * p.p_amb / (ap.R_AIR * p.T_amb) * p.displacement * max(speed, 1.0) / 120.0
+        return steady_exhaust_temp(speed, w_ac / swept, lam >= FUEL_CUT_LAMBDA)
 
     def _advance(self, speed: float, load: float, lam: float) -> None:
         p = self.params
@@ -461,6 +488,7 @@ class SIAirPath(Plant):
         self._advance(speed, load, lam)
         self.T_sensor += self._a_T * (self.x[2] - self.T_sensor)
         self.crank_phase = (self.crank_phase + speed / 60.0 * p.period * p.cylinders / 2.0) % 1.0
+        self.T_cat_in += self._a_exh * (self._T_cat_in_target(speed, lam) - self.T_cat_in)
         self._update()
 
     def _draw(self) -> np.ndarray:
@@ -477,13 +505,11 @@ class SIAirPath(Plant):
         f = flows(x, self._u, p)
         torque, fuel = engine_torque(f, x, speed, lam, p)
         self.flows = f
-        w_ex = f.w_t + f.w_wg
-        T_out = f.T_em - f.P_t / max(w_ex * p.cp_e, 1e-6)
         e = self._draw()
         ripple = p.ripple_p_im * x[1] * math.sin(2.0 * math.pi * self.crank_phase)
         self._out = {
             "EXH_MASS_FLOW_TRUE": f.w_eo,
-            "T_EXH_TRUE": T_out - 273.15,
+            "T_EXH_TRUE": self.T_cat_in,
             "ENGINE_TORQUE": max(torque, 0.0),
             "FUEL_RATE": fuel * 3600.0 / p.fuel_density,
             "ENGINE_POWER": max(torque, 0.0) * speed * math.pi / 30.0 / 1000.0,

@@ -40,8 +40,11 @@ def test_started_plant_is_stationary_with_its_flows_balanced():
     assert out["FUEL_RATE"] == pytest.approx(f.w_ac / 14.7 * 3600 / 0.745)
     assert out["ENGINE_POWER"] == pytest.approx(out["ENGINE_TORQUE"] * 1800 * math.pi / 30 / 1000)
     assert out["CAC_TRUE"] == pytest.approx(f.cac * 1e6)
-    # the turbine-out temperature the catalyst sees is below the manifold's
-    assert 300.0 < out["T_EXH_TRUE"] < f.T_em - 273.15
+    # the catalyst-inlet temperature: issue 8's map over the relative charge (air over the
+    # swept volume at ambient density and η_vol 0.9), below the manifold's
+    charge = f.w_ac / (0.9 * 101300 / (287 * 298) * 2.3e-3 * 1800 / 120)
+    assert out["T_EXH_TRUE"] == pytest.approx(min(280 + 0.045 * 1800 + 230 * charge, 950), rel=1e-9)
+    assert out["T_EXH_TRUE"] < f.T_em - 273.15
 
 
 def test_steady_state_is_a_rest_point_of_the_model():

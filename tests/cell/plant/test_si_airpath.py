@@ -118,3 +118,22 @@ def test_bad_substeps_are_refused():
 
     with pytest.raises(ConfigError, match="substeps"):
         SIAirPath(replace(PLANT_PARAMS, substeps=0))
+
+
+def test_throttle_steps_and_operating_points_cycles():
+    from cell.plant.si_engine import (
+        OPERATING_LOADS,
+        OPERATING_SPEEDS,
+        SI_CYCLES,
+        THROTTLE_STEP_LOADS,
+    )
+
+    ts = SI_CYCLES["throttle-steps"]()
+    assert np.all(ts.speed == 1800.0)
+    levels = [ts.setpoint(8.0 * i + 4.0)[1] for i in range(len(THROTTLE_STEP_LOADS))]
+    assert levels == pytest.approx(list(THROTTLE_STEP_LOADS))
+    assert len(THROTTLE_STEP_LOADS) - 1 >= 10  # at least ten step cases (seed 003: twenty)
+    ops = SI_CYCLES["operating-points"]()
+    pts = {ops.setpoint(10.0 * i + 5.0) for i in range(len(OPERATING_SPEEDS) * len(OPERATING_LOADS))}
+    assert pts == {(s, ld) for s in OPERATING_SPEEDS for ld in OPERATING_LOADS}
+    assert ops.duration == 10.0 * len(pts)

@@ -5,8 +5,11 @@ from __future__ import annotations
 from . import registry
 from .controller import controllers
 from .estimators.adaptive import adaptive_filters
+from .estimators.airpath import AirPathObserver
 from .estimators.filters import native_filters
 from .estimators.twc import twc_observers
+from .experiments.airpath import AIRPATH
+from .experiments.airpath_design import AIRPATH_DESIGN
 from .experiments.closed_loop import CLOSED_LOOP
 from .experiments.twc import TWC
 from .plant.profiles import LARGE_DIESEL
@@ -33,9 +36,15 @@ registry.block_set(BlockSet("seed004-filters", lambda s: [*native_filters(), *ad
 registry.block_set(BlockSet("seed004-controllers",
                             lambda s: [] if s.no_controllers else controllers("kalman"),
                             engines=("large-diesel",)))
+# seed 003's constant-gain EKF of the SI air path, on the shipped gain table
+registry.block_set(BlockSet("seed003-airpath", lambda s: [AirPathObserver()], engines=("si-turbo",)))
 
 registry.block_set(BlockSet("seed000-twc", twc_observers, engines=("si-turbo",)))
 
 # experiments
 registry.experiment(CLOSED_LOOP)
 registry.experiment(TWC)
+registry.experiment(AIRPATH)
+
+# design tools
+registry.design(AIRPATH_DESIGN)

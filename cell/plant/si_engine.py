@@ -269,10 +269,51 @@ def steady_cycle(speed: float = 2000.0, load: float = 0.4, duration: float = 600
                    f"fixed {speed:g} rpm and load demand {load:g}")
 
 
+def _holds(name: str, points: list[tuple[float, float]], hold: float, description: str,
+           ramp: float = 0.02) -> SICycle:
+    """Speed/load levels each held ``hold`` s, joined by ``ramp`` s steps."""
+    t, speed, load = [0.0], [points[0][0]], [points[0][1]]
+    for i, (s, ld) in enumerate(points):
+        if i:
+            t.append(i * hold + ramp)
+            speed.append(s)
+            load.append(ld)
+        t.append((i + 1) * hold)
+        speed.append(s)
+        load.append(ld)
+    return SICycle(name, np.array(t), np.array(speed), np.array(load), hold * len(points),
+                   description)
+
+
+#: Load levels of ``throttle-steps``: twelve steps up and down between 0.2 and 0.9 at 1800 rpm.
+THROTTLE_STEP_LOADS = (0.25, 0.75, 0.35, 0.9, 0.5, 0.2, 0.65, 0.3, 0.85, 0.45, 0.7, 0.25, 0.6)
+#: Grid of ``operating-points``: speeds (rpm) x load demands.
+OPERATING_SPEEDS = (1000.0, 1500.0, 2000.0, 2500.0, 3000.0, 3500.0, 4000.0)
+OPERATING_LOADS = (0.1, 0.3, 0.5, 0.7, 0.9)
+
+
+def throttle_steps_cycle(hold: float = 8.0) -> SICycle:
+    """Seed 003's Figures 1, 5 and 6: throttle (load-demand) steps at a constant 1800 rpm,
+    each level held ``hold`` s (twelve step cases)."""
+    return _holds("throttle-steps", [(1800.0, ld) for ld in THROTTLE_STEP_LOADS], hold,
+                  "throttle steps at 1800 rpm (seed 003, Figures 1, 5, 6)")
+
+
+def operating_points_cycle(hold: float = 10.0) -> SICycle:
+    """Stationary operating points for the air-path observer's design (``testcell design
+    airpath``): every speed x load of the grid, held ``hold`` s (the turbo settles slowly at
+    low load: its slowest pole is near -0.2 /s, seed 003 §3.1.1)."""
+    pts = [(s, ld) for s in OPERATING_SPEEDS for ld in OPERATING_LOADS]
+    return _holds("operating-points", pts, hold,
+                  "stationary speed x load grid for the air-path gain table (seed 003, §3.1)")
+
+
 #: The SI duty cycles by name: name -> factory of an :class:`SICycle` (first is the default).
 SI_CYCLES: dict[str, Callable[[], SICycle]] = {
     "ftp": ftp_cycle,
     "steady": steady_cycle,
+    "throttle-steps": throttle_steps_cycle,
+    "operating-points": operating_points_cycle,
 }
 
 

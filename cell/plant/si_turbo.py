@@ -8,15 +8,19 @@ plant               consumes                                    produces
 ``SIEngine``        (the duty cycle)                            ENGINE_SPEED, SI_LOAD_DEMAND,
                                                                 LAMBDA_ENGINE_TRUE,
                                                                 FUEL_CUT_TRUE
-``SIBreathing``     ENGINE_SPEED, SI_LOAD_DEMAND,               EXH_MASS_FLOW_TRUE, T_EXH_TRUE,
-                    LAMBDA_ENGINE_TRUE                          ENGINE_TORQUE, FUEL_RATE,
-                                                                ENGINE_POWER
+``SIAirPath``       ENGINE_SPEED, SI_LOAD_DEMAND,               EXH_MASS_FLOW_TRUE, T_EXH_TRUE,
+(seed 003)          LAMBDA_ENGINE_TRUE                          ENGINE_TORQUE, FUEL_RATE,
+                                                                ENGINE_POWER, the air-path
+                                                                sensors and truth
 ``Catalyst``        EXH_MASS_FLOW_TRUE, T_EXH_TRUE,             LAMBDA_PRE, LAMBDA_MID,
                     LAMBDA_ENGINE_TRUE, OSC (scenario)          EXH_MASS_FLOW, T_EXH, T_CAT,
                                                                 SOX_*_TRUE, OSC_TRUE, ...
 ==================  ==========================================  ==============================
 
-Its frames are in ``dbc/si_turbo.dbc`` (and ``ENGINE_1`` of ``dbc/testcell.dbc``).
+Its frames are in ``dbc/si_turbo.dbc``, ``dbc/si_airpath.dbc`` (and ``ENGINE_1`` of
+``dbc/testcell.dbc``). The mean-value air path (:class:`~cell.plant.si_airpath.SIAirPath`)
+replaced issue 8's simple :class:`~cell.plant.si_engine.SIBreathing`, which stays in
+``si_engine`` as the reference the air path's exhaust flow is checked against.
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ from ..settings import Option, Settings
 from .base import Plant
 from .catalyst import Catalyst, CatalystParams
 from .composition import Composition
-from .si_engine import SI_CYCLES, BreathingParams, SIBreathing, SICycle, SIEngine, SIEngineParams
+from .si_airpath import SIAirPath, SIAirPathParams
+from .si_engine import SI_CYCLES, SICycle, SIEngine, SIEngineParams
 
 ENGINE_NAME = "si-turbo"
 
@@ -39,7 +44,7 @@ def si_turbo(
     cycle: str | SICycle = "ftp",
     seed: int = 0,
     engine: SIEngineParams | None = None,
-    breathing: BreathingParams | None = None,
+    airpath: SIAirPathParams | None = None,
     osc: float | None = None,
     osc_drift: float | None = None,
     catalyst: CatalystParams | None = None,
@@ -57,7 +62,7 @@ def si_turbo(
         catalyst (default 1; ``--osc 0.6`` is an aged one).
     osc_drift:
         Change of OSC per hour of running (default 0).
-    engine, breathing, catalyst:
+    engine, airpath, catalyst:
         The plants' constants.
     """
     cat = catalyst or CatalystParams()
@@ -66,7 +71,7 @@ def si_turbo(
     if osc_drift is not None:
         cat = replace(cat, osc_drift=float(osc_drift))
     eng = SIEngine(cycle, engine)
-    plants: list[Plant] = [eng, SIBreathing(breathing), Catalyst(cat, seed=seed)]
+    plants: list[Plant] = [eng, SIAirPath(airpath, seed=seed), Catalyst(cat, seed=seed)]
     about = {"duty": eng.cycle.name, "seed": seed, "osc": f"{cat.osc:g}"}
     if cat.osc_drift:
         about["osc drift"] = f"{cat.osc_drift:g}/h"

@@ -8,6 +8,7 @@ from .estimators.adaptive import adaptive_filters
 from .estimators.filters import native_filters
 from .experiments.closed_loop import CLOSED_LOOP
 from .plant.profiles import LARGE_DIESEL
+from .plant.si_turbo import SI_TURBO
 from .registry import BlockFamily, BlockSet
 
 # block families: GET/PATCH /{section}/{name} and a section of the tuning file each
@@ -21,6 +22,7 @@ registry.family(BlockFamily("observer", "observers", "model-based observers on t
 
 # engine profiles
 registry.engine(LARGE_DIESEL)
+registry.engine(SI_TURBO)
 
 # the runtime's native blocks
 registry.block_set(BlockSet("seed004-filters", lambda s: [*native_filters(), *adaptive_filters()],

@@ -6,7 +6,9 @@ from . import registry
 from .controller import controllers
 from .estimators.adaptive import adaptive_filters
 from .estimators.filters import native_filters
+from .estimators.imbalance import imbalance_observers
 from .experiments.closed_loop import CLOSED_LOOP
+from .experiments.imbalance import IMBALANCE
 from .plant.profiles import LARGE_DIESEL
 from .plant.si_turbo import SI_TURBO
 from .registry import BlockFamily, BlockSet
@@ -32,5 +34,10 @@ registry.block_set(BlockSet("seed004-controllers",
                             lambda s: [] if s.no_controllers else controllers("kalman"),
                             engines=("large-diesel",)))
 
+# seed 001: the UEGO-inversion and transmission-rod observers on the crank-angle streams
+registry.block_set(BlockSet("seed001-observers", lambda s: imbalance_observers(),
+                            engines=("si-turbo",)))
+
 # experiments
 registry.experiment(CLOSED_LOOP)
+registry.experiment(IMBALANCE)

@@ -143,8 +143,11 @@ class StreamTracker:
 
     :meth:`push` takes a frame and yields events in angle order: ``("samples", index,
     values, t)`` for consecutive samples and ``("gap", lost, index, t)`` before samples
-    that follow ``lost`` missing ones. A gap of a whole multiple of the period (e.g. a bus
-    silent for an entire engine cycle) cannot be seen from the angle alone.
+    that follow ``lost`` missing ones. A frame more than half a period behind the expected
+    angle is taken as late; when more than ``window`` such frames arrive in sequence, the
+    stream has in fact jumped ahead (a long gap): the tracker follows them and reports the
+    gap. A gap of a whole multiple of the period (a bus silent for an entire engine cycle)
+    cannot be seen from the angle alone.
     """
 
     layout: StreamLayout
@@ -152,6 +155,7 @@ class StreamTracker:
     counts: StreamCounts = field(default_factory=StreamCounts)
     _next: int | None = None
     _held: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)
+    _run: list[tuple[int, np.ndarray, float]] = field(default_factory=list)
 
     def push(self, index: int, values: np.ndarray, t: float) -> Iterator[tuple]:
         c, period = self.counts, self.layout.period
@@ -160,8 +164,29 @@ class StreamTracker:
             self._next = index
         d = (index - self._next) % period
         if d >= period // 2 or (d == 0 and index in self._held):
-            c.late += 1  # its place has passed (or it is a duplicate)
+            c.late += 1  # its place has passed (or it is a duplicate)...
+            run = self._run
+            if run and index != (run[-1][0] + len(run[-1][1])) % period:
+                run.clear()
+            run.append((index, values, t))
+            if len(run) <= self.window:
+                return
+            # ...unless the stream goes on from there: it jumped ahead over a long gap
+            c.late -= len(run)
+            first = run[0][0]
+            lost = (first - self._next) % period
+            c.lost_frames += -(-lost // self.layout.n)
+            c.gaps += 1
+            c.last_gap = {"at_index": first, "lost_samples": lost, "t": run[0][2]}
+            yield ("gap", lost, first, run[0][2])
+            self._held.clear()
+            for i, vals, ts in run:
+                c.samples += len(vals)
+                yield ("samples", i, vals, ts)
+            self._next = (run[-1][0] + len(run[-1][1])) % period
+            run.clear()
             return
+        self._run.clear()
         if d > 0:
             if index in self._held:
                 c.late += 1

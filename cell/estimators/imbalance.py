@@ -20,8 +20,9 @@ gains are redesigned when the engine speed moves by more than 1 %. Outputs:
   (Figures 5, 7): 180 deg from the cylinder's exhaust-valve opening plus the transport
   delay to the sensor, as the observer's model believes them (``exhaust_deg``);
 - ``IMBALANCE_CYL``: the cylinder whose exhaust-phase AFR departs most from the mean of
-  the four, when that departure exceeds ``threshold`` (AFR) for ``persist`` successive
-  exhaust phases; 0 when none does. It is invalid (not yet known) until ``settle_cycles``
+  the four, when that departure exceeds ``threshold`` (0.5 AFR, about 3.4 %) for
+  ``persist`` successive exhaust phases; 0 when none does. A cylinder already named stays
+  named while its departure is within 80 % of the largest (two cylinders about level). It is invalid (not yet known) until ``settle_cycles``
   engine cycles after a start or a reset.
 
 **Transmission-rod inversion** (:class:`RodInversion`, seed 001 "Transmission rod dynamics
@@ -212,6 +213,7 @@ class UegoInversion(_StreamObserver):
         self._win_clean = False
         self.cyl_est = np.full(N_CYL, math.nan)
         self.cyl_meas = np.full(N_CYL, math.nan)
+        self._fresh: set[int] = set()
         self._candidate = (0, 0)
         self.diagnosis = math.nan
 
@@ -221,7 +223,8 @@ class UegoInversion(_StreamObserver):
         self._announce_reset = True
 
     def _skip(self) -> None:
-        self._win_clean = False  # the exhaust phase the gap fell in is not used
+        self._win_clean = False  # the exhaust phase the gap fell in is not used...
+        self._fresh.clear()  # ...and no diagnosis until every cylinder's phase is new again
 
     def _owner(self, index: np.ndarray) -> np.ndarray:
         """The cylinder (1..4) whose exhaust phase each sample index belongs to."""
@@ -232,6 +235,7 @@ class UegoInversion(_StreamObserver):
         cyl = self._win_cyl
         if cyl is not None and self._win_clean and self._win_n >= 0.8 * CYCLE / N_CYL:
             self.cyl_est[cyl - 1], self.cyl_meas[cyl - 1] = self._win_sum / self._win_n
+            self._fresh.add(cyl)
             if cyl == FIRING_ORDER[-1]:
                 self.cycles_since_reset += 1
             self._diagnose()
@@ -240,12 +244,15 @@ class UegoInversion(_StreamObserver):
         self._win_clean = True
 
     def _diagnose(self) -> None:
-        if self.cycles_since_reset < self.settle_cycles or not np.isfinite(self.cyl_est).all():
+        if (self.cycles_since_reset < self.settle_cycles or not np.isfinite(self.cyl_est).all()
+                or len(self._fresh) < N_CYL):
             return
-        dev = self.cyl_est - self.cyl_est.mean()
-        i = int(np.argmax(np.abs(dev)))
-        cand = i + 1 if abs(dev[i]) > self.threshold else 0
+        dev = np.abs(self.cyl_est - self.cyl_est.mean())
+        i = int(np.argmax(dev))
+        cand = i + 1 if dev[i] > self.threshold else 0
         prev, count = self._candidate
+        if cand and prev and dev[prev - 1] > self.threshold and dev[prev - 1] >= 0.8 * dev[i]:
+            cand = prev  # two cylinders about level: keep the one named (hysteresis)
         count = count + 1 if cand == prev else 1
         self._candidate = (cand, count)
         if count >= self.persist:
@@ -315,7 +322,7 @@ class UegoInversion(_StreamObserver):
 class RodInversion(_StreamObserver):
     """Transmission-rod inversion (module docstring). Stream ``N_CRANK``."""
 
-    def __init__(self, name: str = "rod_inversion", *, omega_bar: float = 5.2, xi: float = 0.15,
+    def __init__(self, name: str = "rod_inversion", *, omega_bar: float = 3.1, xi: float = 0.15,
                  h: int = 2, eps: float = 0.1, beta2: float = 1.0, gap_skip: int = 24,
                  record: bool = False) -> None:
         outs = ["N_CYL_EST"] + [f"TORQUE_BALANCE_{i}" for i in range(1, N_CYL + 1)]

@@ -25,9 +25,10 @@ Gain designs (:func:`design_full`, :func:`design_partial`):
   A_0`. Averaging the coefficient errors over a period gives :math:`\dot{\tilde c}_k \approx
   -\epsilon \beta_k^2 P_k^\dagger P_k \tilde c_k`, which converges for this sign (the paper
   prints a leading minus that, with its eq. 4, would diverge). The paper's rod section
-  writes a per-harmonic :math:`\beta_k`; we take :math:`\beta_k^2 = \beta^2 / \|P_k\|^2`,
-  so that with :math:`\epsilon` = 0.1 and :math:`\beta^2` = 1 each coefficient's averaged
-  error decays at the rate 0.1 per radian of crank angle whatever the units of the model.
+  writes a per-harmonic :math:`\beta_k`; we take :math:`\beta_k^2 = \beta^2 \omega_0 /
+  \|P_k\|^2`, so that with :math:`\epsilon` = 0.1 and :math:`\beta^2` = 1 each
+  coefficient's averaged error decays at the rate 0.1 per radian of the fundamental's phase
+  (:math:`\omega_0\alpha`), whatever the units of the model.
 
 *Coefficient banks.* A signal made of one pulse per cylinder (the crank speed) is described
 per cylinder: ``banks`` sets of coefficients over the firing period, the set of cylinder
@@ -115,7 +116,7 @@ def design_partial(A, A0, C, L, omega0: float, h: int, eps: float = 0.1, beta2: 
         Pk = C @ np.linalg.solve(1j * k * omega0 * np.eye(n) - Acl, A0)  # p x m
         if np.linalg.matrix_rank(Pk) < min(Pk.shape):
             raise ValueError(f"P_{k} is not full rank: harmonic {k} is not observable")
-        b2 = beta2 / np.linalg.norm(Pk, 2) ** 2 if normalise else beta2
+        b2 = beta2 * omega0 / np.linalg.norm(Pk, 2) ** 2 if normalise else beta2
         Lk.append(eps * b2 * Pk.conj().T)
     return Gains(L, tuple(Lk))
 

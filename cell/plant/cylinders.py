@@ -86,7 +86,7 @@ class CylinderParams:
     """Angle after TDC of the combustion torque's peak, deg CA."""
     xi: float = 0.15
     """Damping of the transmission rod (seed 001)."""
-    omega_bar: float = 5.0
+    omega_bar: float = 3.0
     """Natural frequency of the transmission rod, per radian of crank angle."""
     speed_noise: float = 0.3
     """Crank speed sensor noise std, rpm."""

@@ -22,8 +22,10 @@ gains are redesigned when the engine speed moves by more than 1 %. Outputs:
 - ``IMBALANCE_CYL``: the cylinder whose exhaust-phase AFR departs most from the mean of
   the four, when that departure exceeds ``threshold`` (0.5 AFR, about 3.4 %) for
   ``persist`` successive exhaust phases; 0 when none does. A cylinder already named stays
-  named while its departure is within 80 % of the largest (two cylinders about level). It is invalid (not yet known) until ``settle_cycles``
-  engine cycles after a start or a reset.
+  named while its departure is within 80 % of the largest (two cylinders about level).
+  It is not yet known (the channel has no value, or is invalid after a reset) until
+  ``settle_cycles`` engine cycles after a start or a reset, and after lost frames until
+  every cylinder's exhaust phase has been seen whole again.
 
 **Transmission-rod inversion** (:class:`RodInversion`, seed 001 "Transmission rod dynamics
 inversion"). :math:`A = [[0, 1], [-\bar\omega^2, -2\bar\xi\bar\omega]]`, :math:`A_0 = [0,

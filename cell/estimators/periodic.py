@@ -36,9 +36,11 @@ per cylinder: ``banks`` sets of coefficients over the firing period, the set of 
 coefficients :math:`c_{k,i}` of seed 001's balance energy :math:`V_i` are those of bank
 ``i``. With one bank this is eq. 4 as printed.
 
-The implementation is discrete in angle, one step per sample (6 deg, like the paper's). Over
-one sample, with :math:`y` and :math:`\hat w` held, :math:`\hat x` is advanced exactly
-(matrix exponential of :math:`A - LC`) and :math:`\hat c_k` by one Euler step. The observer
+The implementation is discrete in angle, one step per sample (6 deg, like the paper's). The
+state :math:`\hat x` is kept half a sample before each sample; over the interval centred on
+sample ``j``, with :math:`y_j` and :math:`\hat w(\alpha_j)` held, it is advanced exactly
+(matrix exponential of :math:`A - LC`), and :math:`\hat c_k` by one Euler step on the
+innovation at the sample, :math:`C(\hat x_{j-1/2} + \hat x_{j+1/2})/2 - y_j`. The observer
 is then a linear periodically time-varying system in the real state
 :math:`z = (\hat x, \hat c_0, \Re\hat c_1, \Im\hat c_1, \dots)`,
 :math:`z_{j+1} = M_j z_j + N_j y_j`, and :class:`PeriodicObserver` precomputes, per start
@@ -203,11 +205,14 @@ class PeriodicObserver:
             a = self.angle(j)
             Wj = self.w_row(j)
             W[j] = Wj
-            # x+ = phi x + gam (A0 w(z) + L y)
+            # x is held half a sample early: x+ = phi x + gam (A0 w(a_j) + L y_j) spans the
+            # interval centred on the sample (no half-sample lag of y or w)
+            Wc = np.zeros((m, d))
+            Wc[:, n:] = Wj[:, n:]
             M[j, :n, :n] = self._phi
-            M[j, :n, :] += self._gam @ self.A0 @ Wj
+            M[j, :n, :] += self._gam @ self.A0 @ Wc
             N[j, :n, :] = self._gam @ L
-            # c+ = c - D G(a) (C x - y): rows of c0, Re ck, Im ck
+            # the innovation at the sample: C (x + x+) / 2 - y; c+ = c - D G(a) innovation
             G = np.zeros((self.nc, p))
             off = self.bank_of(j) * self.nc_bank
             G[off:off + m] = self.gains.Lk[0].real
@@ -216,9 +221,12 @@ class PeriodicObserver:
                 base = off + m * (2 * k - 1)
                 G[base:base + m] = ek.real
                 G[base + m:base + 2 * m] = ek.imag
-            M[j, n:, n:] = np.eye(self.nc)
-            M[j, n:, :n] = -D * G @ self.C
-            N[j, n:, :] = D * G
+            Ex = 0.5 * self.C @ (np.eye(n) + self._phi)  # innovation from x
+            Ec = 0.5 * self.C @ self._gam @ self.A0 @ Wc[:, n:]  # ... from c
+            Ey = 0.5 * self.C @ self._gam @ L - np.eye(p)  # ... from y
+            M[j, n:, :n] = -D * G @ Ex
+            M[j, n:, n:] = np.eye(self.nc) - D * G @ Ec
+            N[j, n:, :] = -D * G @ Ey
         return M, N, W
 
     def transition(self, j: int) -> tuple[np.ndarray, np.ndarray]:

@@ -127,7 +127,9 @@ class CaseResult:
     def as_json(self) -> dict[str, Any]:
         c = self.case
         h0, h1 = self.mean_harmonics(True), self.mean_harmonics(False)
-        lags = self.phase_lags()
+        # a lag is defined modulo the signal's period: one cylinder off repeats every cycle
+        single = sum(1 for o in c.offsets if o) == 1
+        lags = self.phase_lags() if single else {"sensor_deg": None, "estimate_deg": None}
         return {
             "case": c.name, "offsets": list(c.offsets), "rpm": c.rpm,
             "diagnosed_cylinder": self.diagnosed, "expected": list(c.expected),

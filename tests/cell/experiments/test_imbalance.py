@@ -14,7 +14,7 @@ from cell.plant.cylinders import N_CYL
 
 T_ON, DURATION = 1.5, 3.5
 #: engine cycles the diagnosis may take after the imbalance starts ("a few")
-MAX_CYCLES = 12.0
+MAX_CYCLES = 15.0
 
 
 @pytest.fixture(scope="module")

@@ -338,46 +338,5 @@ class Cylinders(Plant):
         return out
 
 
-@dataclass(frozen=True)
-class OperatingPoint:
-    """A held test-bench operating point (seed 001's runs: 1500 rpm, 8-9 bar IMEP)."""
-
-    rpm: float = 1500.0
-    torque: float = 120.0
-    """Brake torque, Nm (about 8.5 bar IMEP on 2 L)."""
-    lam_amplitude: float = 0.01
-    """Amplitude of the λ controller's limit cycle about 1."""
-    lam_hz: float = 1.0
-    """Frequency of that limit cycle, Hz."""
-    period: float = 0.01
-
-
-class SteadyEngine(Plant):
-    """Holds an :class:`OperatingPoint`: speed, torque and a λ limit cycle about 1.
-
-    A stand-in for the duty-cycle engine when an experiment wants the paper's steady
-    bench conditions; it fills the ENGINE_1 frame (speed, torque, fuel rate, power).
-    """
-
-    inputs = ()
-    outputs = ("ENGINE_SPEED", "ENGINE_TORQUE", "LAMBDA_ENGINE_TRUE", "FUEL_RATE", "ENGINE_POWER")
-
-    def __init__(self, point: OperatingPoint | None = None, name: str = "engine") -> None:
-        self.point = point or OperatingPoint()
-        super().__init__(name, self.point.period)
-        self.t = 0.0
-
-    def step(self, t: float, u: Mapping[str, float]) -> None:
-        self.t = t
-
-    def output(self) -> dict[str, float]:
-        pt = self.point
-        power = pt.torque * pt.rpm * math.pi / 30.0 / 1000.0
-        return {"ENGINE_SPEED": pt.rpm, "ENGINE_TORQUE": pt.torque,
-                "LAMBDA_ENGINE_TRUE": 1.0 + pt.lam_amplitude * math.sin(2 * math.pi * pt.lam_hz * self.t),
-                "FUEL_RATE": power * 0.25 / 0.74 * 1.0,  # ~250 g/kWh of gasoline (0.74 kg/L)
-                "ENGINE_POWER": power}
-
-
-__all__ = ["CylinderParams", "Cylinders", "OperatingPoint", "STOICH_AFR", "SteadyEngine",
-           "cylinder_lambdas", "parse_imbalance", "relative_work", "rod_matrices", "torque_pulse"]
+__all__ = ["CylinderParams", "Cylinders", "STOICH_AFR", "cylinder_lambdas", "parse_imbalance",
+           "relative_work", "rod_matrices", "torque_pulse"]

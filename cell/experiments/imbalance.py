@@ -148,9 +148,10 @@ def _r(v: float | None, nd: int = 4) -> float | None:
     return None if v is None or not math.isfinite(v) else round(float(v), nd)
 
 
-def xcorr_lag(ref: np.ndarray, sig: np.ndarray, max_lag: int = 90) -> int:
+def xcorr_lag(ref: np.ndarray, sig: np.ndarray, max_lag: int = CYCLE // 2 - 1) -> int:
     """The lag (samples, >= 0 when ``sig`` is behind ``ref``) maximising their
-    cross-correlation, mean removed."""
+    cross-correlation, mean removed; within half an engine cycle (a lag of a signal that
+    repeats every cycle is defined modulo the cycle)."""
     r, s = ref - ref.mean(), sig - sig.mean()
     n = len(r)
     best, arg = -np.inf, 0

@@ -143,3 +143,41 @@ def test_json_line_per_case(cyl1_rich):
     j = json.loads(json.dumps(cyl1_rich.as_json()))
     assert j["diagnosed_cylinder"] == 1 and len(j["harmonics_after"]) == 3
     assert j["diagnosis_cycles"] == pytest.approx(cyl1_rich.diagnosis_cycles(), abs=1e-3)
+
+
+def _args(*argv):
+    import argparse
+
+    from cell.experiments.imbalance import add_arguments
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    return p.parse_args(argv)
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (("--rpm", "300"), "--rpm must be 800..6000, got 300"),
+    (("--cylinder", "5"), "--cylinder must be 1..4, got 5"),
+    (("--cylinder", "2", "--offset", "0.7"), "--offset must be a fuel fraction"),
+    (("--cylinder", "2", "--opposite"), "--opposite and --cylinder exclude each other"),
+    (("--duration", "1"), "--duration must be at least 2.5 s"),
+])
+def test_bad_experiment_options_are_refused_before_any_work(argv, needle):
+    from cell.errors import ConfigError
+    from cell.experiments.imbalance import cases_from_args
+
+    with pytest.raises(ConfigError, match=needle.replace(".", r"\.")):
+        cases_from_args(_args(*argv))
+
+
+def test_the_command_prints_json_lines_and_writes_the_figures(tmp_path, capsys):
+    from cell.cli import main
+
+    rc = main(["experiment", "imbalance", "--cylinder", "2", "--offset", "-0.25", "--duration", "3",
+               "--json", "--out", str(tmp_path)])
+    assert rc == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert len(lines) == 1 and lines[0]["diagnosed_cylinder"] == 2 and lines[0]["diagnosis_cycles"]
+    assert {p.name for p in tmp_path.glob("*.png")} == {
+        "fig4_afr_reconstruction.png", "fig5_diagnosis.png", "fig6_harmonics.png",
+        "fig11_crank_speed.png", "fig12_torque_balance.png"}

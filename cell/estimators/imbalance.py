@@ -17,8 +17,9 @@ gains are redesigned when the engine speed moves by more than 1 %. Outputs:
 - ``AFR_MANIFOLD_EST``: :math:`\hat w` at the last sample;
 - ``AFR_HARM_1..3``: :math:`E(k) = \sqrt{|c_k|^2 + |c_{-k}|^2} = \sqrt 2 |c_k|` (Figures 6, 8);
 - ``AFR_CYL_1..4_EST``: the mean of :math:`\hat w` over each cylinder's exhaust phase
-  (Figures 5, 7): 180 deg from the cylinder's exhaust-valve opening plus the transport
-  delay to the sensor, as the observer's model believes them (``exhaust_deg``);
+  (Figures 5, 7): 180 deg from the cylinder's exhaust-valve opening (``evo_deg`` after its
+  firing TDC) plus the gas's delay to the sensor (``delay`` s, i.e. ``6 rpm delay`` deg),
+  as the observer's model believes them;
 - ``IMBALANCE_CYL``: the cylinder whose exhaust-phase AFR departs most from the mean of
   the four, when that departure exceeds ``threshold`` (0.5 AFR, about 3.4 %) for
   ``persist`` successive exhaust phases; 0 when none does. A cylinder already named stays
@@ -133,7 +134,8 @@ class UegoInversion(_StreamObserver):
 
     def __init__(self, name: str = "afr_inversion", *, tau1: float = 0.025, tau2: float = 0.020,
                  h: int = 3, ltilde: float = 4.0, alpha: float = 4.0, threshold: float = 0.5,
-                 persist: int = 4, settle_cycles: int = 10, exhaust_deg: float = 190.0,
+                 persist: int = 4, settle_cycles: int = 10, evo_deg: float = 140.0,
+                 delay: float = 0.007,
                  gap_skip: int = 24, record: bool = False) -> None:
         outs = (["AFR_MANIFOLD_EST"] + [f"AFR_HARM_{k}" for k in (1, 2, 3)]
                 + [f"AFR_CYL_{i}_EST" for i in range(1, N_CYL + 1)] + ["IMBALANCE_CYL"])
@@ -154,15 +156,17 @@ class UegoInversion(_StreamObserver):
                              ge=1, le=100),
             "settle_cycles": Param("settle_cycles", int, "engine cycles before the first diagnosis "
                                    "after a start or reset", ge=1, le=1000),
-            "exhaust_deg": Param("exhaust_deg", float, "crank angle after cylinder 1's firing TDC "
-                                 "where its exhaust phase starts at the sensor (EVO + delay), deg",
-                                 ge=0.0, le=720.0),
+            "evo_deg": Param("evo_deg", float, "exhaust-valve opening after firing TDC, deg",
+                             ge=0.0, le=720.0),
+            "delay": Param("delay", float, "delay of the exhaust gas from the valve to the "
+                           "sensor, s", ge=0.0, le=0.2),
             "gap_skip": Param("gap_skip", int, "lost samples skipped over; more reset the observer",
                               ge=0, le=10_000),
         }
         checked = self.validate({"tau1": tau1, "tau2": tau2, "h": h, "ltilde": ltilde, "alpha": alpha,
                                  "threshold": threshold, "persist": persist,
-                                 "settle_cycles": settle_cycles, "exhaust_deg": exhaust_deg,
+                                 "settle_cycles": settle_cycles, "evo_deg": evo_deg,
+                                 "delay": delay,
                                  "gap_skip": gap_skip})
         for key, value in checked.items():
             setattr(self, key, value)
@@ -230,7 +234,8 @@ class UegoInversion(_StreamObserver):
 
     def _owner(self, index: np.ndarray) -> np.ndarray:
         """The cylinder (1..4) whose exhaust phase each sample index belongs to."""
-        pos = (((index * SAMPLE_DEG - self.exhaust_deg) % 720.0) // (720.0 / N_CYL)).astype(int)
+        start = self.evo_deg + 6.0 * (self.rpm or 0.0) * self.delay
+        pos = (((index * SAMPLE_DEG - start) % 720.0) // (720.0 / N_CYL)).astype(int)
         return np.asarray(FIRING_ORDER)[pos]
 
     def _close_window(self) -> None:

@@ -64,11 +64,14 @@ class Case:
 
     @property
     def expected(self) -> tuple[int, ...]:
-        """Cylinders a correct diagnosis may name (0: balanced)."""
-        big = max(abs(o) for o in self.offsets)
-        if big == 0:
+        """Cylinders a correct diagnosis may name (0: balanced): those whose fuel departs
+        most from the mean (the λ control keeps the mean). Two opposite cylinders both rich
+        make all four depart equally (two rich, two lean): any of them is right."""
+        fuel = 1.0 + np.asarray(self.offsets, dtype=float)
+        dev = np.abs(fuel - fuel.mean())
+        if dev.max() < 1e-9:
             return (0,)
-        return tuple(i + 1 for i, o in enumerate(self.offsets) if abs(o) == big)
+        return tuple(int(i) + 1 for i in np.nonzero(dev >= 0.99 * dev.max())[0])
 
 
 @dataclass

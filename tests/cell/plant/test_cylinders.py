@@ -210,3 +210,29 @@ def test_a_stopped_crank_sends_no_samples(db):
     frames = list(Lockstep(sim).frames(20))
     ids = {db.message(m).frame_id for m in ("CRANK_AFR_UEGO", "CRANK_N")}
     assert not [f for f in frames if f.arbitration_id in ids]
+
+
+def test_a_plant_stream_the_dbc_does_not_carry_is_refused(db):
+    class Odd(Cylinders):
+        streams = ("AFR_UEGO", "KNOCK")
+
+    with pytest.raises(ConfigError, match="plant cylinders produces sample stream KNOCK, which no "
+                                          "SIM message"):
+        Simulator(Composition("t", [SteadyEngine(), Odd()]), db)
+
+
+def test_samples_wait_in_the_plant_until_the_simulator_takes_them(db):
+    """With a lockstep stride, frames are made only every few steps: no sample is lost."""
+    from cell.runtime import Runtime
+
+    comp = Composition("t", [SteadyEngine(), Cylinders()])
+    sim = Simulator(comp, db)
+    rt = Runtime(db)
+    seen = []
+    Lockstep(sim, rt, stride=10, wire=lambda fs: seen.extend(fs) or fs).run(1.0)
+    la = find_streams(db.messages)["AFR_UEGO"]
+    idx = [la.unpack(db.decode(f)[1])[0] for f in seen
+           if f.arbitration_id == db.message(la.message).frame_id]
+    # the last exchange is at 0.9 s: every sample up to it, consecutive
+    assert 4 * len(idx) == pytest.approx(0.9 * 1500, abs=8)
+    assert np.all(np.diff(idx) % 120 == 4)

@@ -210,10 +210,11 @@ class UegoInversion(_StreamObserver):
             self._designs[bucket] = got
         self._lp, self._first, self._obs = got
         self._bucket = bucket
+        self._owner_of = self._owners()
 
     # -- windows and diagnosis ----------------------------------------------------------
     def _reset_windows(self) -> None:
-        self._win_sum = np.zeros(2)  # estimate, measured
+        self._win_sum = [0.0, 0.0]  # estimate, measured
         self._win_n = 0
         self._win_cyl: int | None = None
         self._win_clean = False
@@ -232,21 +233,23 @@ class UegoInversion(_StreamObserver):
         self._win_clean = False  # the exhaust phase the gap fell in is not used...
         self._fresh.clear()  # ...and no diagnosis until every cylinder's phase is new again
 
-    def _owner(self, index: np.ndarray) -> np.ndarray:
-        """The cylinder (1..4) whose exhaust phase each sample index belongs to."""
-        start = self.evo_deg + 6.0 * (self.rpm or 0.0) * self.delay
-        pos = (((index * SAMPLE_DEG - start) % 720.0) // (720.0 / N_CYL)).astype(int)
-        return np.asarray(FIRING_ORDER)[pos]
+    def _owners(self) -> list[int]:
+        """The cylinder (1..4) whose exhaust phase each angle index of the cycle belongs to,
+        at the present speed band."""
+        start = self.evo_deg + 6.0 * 1.01**self._bucket * self.delay
+        pos = (((np.arange(2 * CYCLE) * SAMPLE_DEG - start) % 720.0) // (720.0 / N_CYL)).astype(int)
+        return np.asarray(FIRING_ORDER)[pos].tolist()  # two cycles: a frame may wrap
 
     def _close_window(self) -> None:
         cyl = self._win_cyl
         if cyl is not None and self._win_clean and self._win_n >= 0.8 * CYCLE / N_CYL:
-            self.cyl_est[cyl - 1], self.cyl_meas[cyl - 1] = self._win_sum / self._win_n
+            self.cyl_est[cyl - 1] = self._win_sum[0] / self._win_n
+            self.cyl_meas[cyl - 1] = self._win_sum[1] / self._win_n
             self._fresh.add(cyl)
             if cyl == FIRING_ORDER[-1]:
                 self.cycles_since_reset += 1
             self._diagnose()
-        self._win_sum[:] = 0.0
+        self._win_sum = [0.0, 0.0]
         self._win_n = 0
         self._win_clean = True
 
@@ -274,23 +277,31 @@ class UegoInversion(_StreamObserver):
             self.z = np.concatenate([self._first.initial(values[0]), self._obs.initial(values[0])])
             self._reset_windows()
         self.z, out = self._lp.run(self.z, index, values)
-        if not np.isfinite(self.z).all():
+        w = out[:, 0].tolist()
+        last = w[-1]
+        if not math.isfinite(last):  # a non-finite state reaches the output within a frame
             self._reset()
             raise ArithmeticError("the AFR observer diverged; reset")
-        self.samples_seen += len(values)
-        w = out[:, 0]
-        self._w_last = float(w[-1])
-        idx = (index + np.arange(len(values))) % CYCLE
-        owners = self._owner(idx)
-        for k in range(len(values)):
-            if owners[k] != self._win_cyl:
-                self._close_window()
-                self._win_cyl = int(owners[k])
-            self._win_sum[0] += w[k]
-            self._win_sum[1] += values[k]
-            self._win_n += 1
+        vals = values.tolist()
+        n = len(vals)
+        self.samples_seen += n
+        self._w_last = last
+        owners = self._owner_of[index:index + n]
+        if owners[0] == owners[-1] == self._win_cyl:  # the frame lies in one exhaust phase
+            self._win_sum[0] += sum(w)
+            self._win_sum[1] += sum(vals)
+            self._win_n += n
+        else:
+            for k in range(n):
+                if owners[k] != self._win_cyl:
+                    self._close_window()
+                    self._win_cyl = owners[k]
+                self._win_sum[0] += w[k]
+                self._win_sum[1] += vals[k]
+                self._win_n += 1
         if self.trace is not None:
-            self.trace.append(np.column_stack([np.full(len(values), t), idx, values, w]))
+            idx = (index + np.arange(n)) % CYCLE
+            self.trace.append(np.column_stack([np.full(n, t), idx, values, out[:, 0]]))
 
     def harmonics(self) -> np.ndarray:
         """:math:`E(k)` for k = 1..h of the reconstructed manifold AFR (nan before any sample)."""

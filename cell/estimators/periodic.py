@@ -271,7 +271,8 @@ class LinearPeriodic:
     ``M[j]``, ``N[j]`` (the transition at angle index ``j``) and ``O[j]``, ``P[j]`` (outputs
     ``o_j = O_j z_j + P_j y_j`` at that sample, before the transition). :meth:`run` takes the
     ``n`` samples of a frame and returns the state after them and the ``n`` output rows, with
-    two matrix products; the products for each (start index, n) are computed once.
+    one matrix product of ``[[F, G], [H, J]]`` by ``(z, y)``; the products for each (start
+    index, n) are computed once.
     """
 
     def __init__(self, M: np.ndarray, N: np.ndarray, O: np.ndarray, P: np.ndarray) -> None:  # noqa: E741
@@ -279,6 +280,7 @@ class LinearPeriodic:
         self.period, self.d = M.shape[0], M.shape[1]
         self.p, self.q = N.shape[2], O.shape[1]
         self._cache: dict[tuple[int, int], tuple[np.ndarray, ...]] = {}
+        self._stacked: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     def frame(self, j: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         key = (j % self.period, n)
@@ -303,11 +305,17 @@ class LinearPeriodic:
     def run(self, z: np.ndarray, j: int, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """State after the samples ``y`` (shape (n, p) or (n,)) from angle index ``j``, and the
         outputs at each sample (shape (n, q))."""
-        y = np.asarray(y, dtype=float)
-        n = y.shape[0]
-        F, G, H, J = self.frame(j, n)
-        yf = y.reshape(-1)
-        return F @ z + G @ yf, (H @ z + J @ yf).reshape(n, self.q)
+        n = len(y)
+        got = self._stacked.get((j % self.period, n))
+        if got is None:
+            F, G, H, J = self.frame(j, n)
+            got = self._stacked[(j % self.period, n)] = (np.block([[F, G], [H, J]]),
+                                                          np.empty(self.d + n * self.p))
+        S, buf = got
+        buf[:self.d] = z
+        buf[self.d:] = np.ravel(y)
+        v = S @ buf
+        return v[:self.d], v[self.d:].reshape(n, self.q)
 
 
 def single(obs: PeriodicObserver) -> LinearPeriodic:

@@ -157,10 +157,10 @@ class Runtime:
                         f"{block.name} cannot produce {out}: it is a bus input sent by "
                         f"{', '.join(self.db.message(info.message).senders) or 'another node'}"
                     )
-            routes = [self._stream_route(name, block.name) for name in block.streams]
+            layouts = [self._stream_layout(name, block.name) for name in block.streams]
             self.blocks[block.name] = block
-            for route in routes:
-                route.blocks.append(block)
+            for layout in layouts:
+                self._stream_route(layout).blocks.append(block)
             for out in block.outputs:
                 self.producer[out] = block.name
                 unit = self.db.signals[out].unit if out in self.db.signals else ""
@@ -185,14 +185,17 @@ class Runtime:
                 self._history.drop(out)
             return block
 
-    def _stream_route(self, stream: str, block: str) -> _StreamRoute:
-        """The route of a sample stream the DBC defines; refuse one it does not."""
+    def _stream_layout(self, stream: str, block: str) -> StreamLayout:
+        """The layout of a sample stream the DBC defines; refuse one it does not."""
         if self._layouts is None:
             self._layouts = find_streams(self.db.messages)
         layout = self._layouts.get(stream)
         if layout is None:
             raise ConfigError(f"{block} consumes sample stream {stream!r}, which no DBC message "
                               f"carries; streams: {', '.join(sorted(self._layouts)) or 'none'}")
+        return layout
+
+    def _stream_route(self, layout: StreamLayout) -> _StreamRoute:
         m = self.db.message(layout.message)
         key = (m.frame_id, bool(m.is_extended_frame))
         route = self._streams.get(key)

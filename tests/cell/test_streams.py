@@ -231,3 +231,15 @@ def test_live_on_a_bus_as_offline(db):
         got, ref = rt.health()["streams"][name], off.health()["streams"][name]
         assert got == ref  # every frame, in order, none lost or late
     assert rt.channels["IMBALANCE_CYL"].value == off.channels["IMBALANCE_CYL"].value == 4.0
+
+
+def test_a_refused_block_leaves_no_route_behind(db):
+    class Two(Recorder):
+        def __init__(self):
+            super().__init__()
+            self.streams = ("N_CRANK", "NO_SUCH")
+
+    rt = Runtime(db)
+    with pytest.raises(ConfigError, match="NO_SUCH"):
+        rt.add_block(Two())
+    assert rt.health()["streams"] == {} and "recorder" not in rt.blocks

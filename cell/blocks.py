@@ -221,6 +221,9 @@ class Block:
     keeps_input_unit: ClassVar[bool] = False
     #: parameters that are saved but not restored at start-up (a controller starts disabled)
     VOLATILE: ClassVar[tuple[str, ...]] = ()
+    #: crank-angle sample streams (:mod:`cell.streams`) the block consumes sample by sample,
+    #: besides its inputs read at ticks; empty for an ordinary block
+    streams: tuple[str, ...] = ()
 
     def __init__(
         self,
@@ -301,6 +304,28 @@ class Block:
 
     def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         raise NotImplementedError
+
+    # -- sample streams (blocks that declare :attr:`streams`) ---------------------------
+    def samples(self, stream: str, index: int, values: np.ndarray, t: float) -> None:
+        """Consume consecutive samples of ``stream``, in angle order, as their frame arrives.
+
+        ``index`` is the first sample's angle index within the stream's period (0..119 for
+        6 deg over 720 deg); ``values`` are that sample and the ones after it; ``t`` is the
+        frame's bus time. The runtime calls this for every sample of every frame, between
+        ticks, so the block sees the whole stream; it publishes at its ticks (:meth:`step`).
+        Raise :class:`ArithmeticError` to have the frame counted as a block error.
+        """
+        self._samples(stream, index, values, t)
+
+    def _samples(self, stream: str, index: int, values: np.ndarray, t: float) -> None:
+        raise NotImplementedError(f"{self.kind} {self.name} declares streams but takes no samples")
+
+    def gap(self, stream: str, lost: int, index: int, t: float) -> None:
+        """Told that ``lost`` samples of ``stream`` never arrived; the next start at ``index``.
+
+        A block skips ahead over a short gap or resets over a long one, and says which in
+        its :meth:`state`. The default does nothing.
+        """
 
     def state(self) -> dict[str, Any]:
         return {}

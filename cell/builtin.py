@@ -7,10 +7,12 @@ from .controller import controllers
 from .estimators.adaptive import adaptive_filters
 from .estimators.airpath import AirPathObserver
 from .estimators.filters import native_filters
+from .estimators.imbalance import imbalance_observers
 from .estimators.twc import twc_observers
 from .experiments.airpath import AIRPATH
 from .experiments.airpath_design import AIRPATH_DESIGN
 from .experiments.closed_loop import CLOSED_LOOP
+from .experiments.imbalance import IMBALANCE
 from .experiments.twc import TWC
 from .plant.profiles import LARGE_DIESEL
 from .plant.si_turbo import SI_TURBO
@@ -40,11 +42,15 @@ registry.block_set(BlockSet("seed004-controllers",
 registry.block_set(BlockSet("seed003-airpath", lambda s: [AirPathObserver()], engines=("si-turbo",)))
 
 registry.block_set(BlockSet("seed000-twc", twc_observers, engines=("si-turbo",)))
+# seed 001: the UEGO-inversion and transmission-rod observers on the crank-angle streams
+registry.block_set(BlockSet("seed001-observers", lambda s: imbalance_observers(),
+                            engines=("si-turbo",)))
 
 # experiments
 registry.experiment(CLOSED_LOOP)
 registry.experiment(TWC)
 registry.experiment(AIRPATH)
+registry.experiment(IMBALANCE)
 
 # design tools
 registry.design(AIRPATH_DESIGN)

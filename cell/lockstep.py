@@ -59,16 +59,21 @@ class Lockstep:
         before any tick reads them, so a stride of one tick gives the same numbers faster.
     on_tick:
         Called with the bus time at every MED tick of the runtime.
+    wire:
+        What the bus does to the simulator's frames on their way to the runtime (drop,
+        reorder: a lossy bus in a test); ``None`` delivers them all, in order.
     """
 
     def __init__(self, sim: Simulator, runtime: Runtime | None = None, *, stride: int = 1,
-                 on_tick: TickListener | None = None) -> None:
+                 on_tick: TickListener | None = None,
+                 wire: Callable[[list[can.Message]], list[can.Message]] | None = None) -> None:
         if stride < 1:
             raise ValueError(f"stride must be >= 1, got {stride}")
         self.sim = sim
         self.runtime = runtime
         self.stride = stride
         self.on_tick = on_tick
+        self.wire = wire
 
     def steps(self, n: int, frames: bool = False) -> Iterator[tuple[int, list[can.Message]]]:
         """Run ``n`` plant steps; yield ``(k, frames)`` after each exchange, before the step.
@@ -85,7 +90,7 @@ class Lockstep:
                 exchange = rt is not None and k % self.stride == 0
                 out = sim.frames() if (frames or exchange) else []
                 if exchange:
-                    rt.ingest_many(out)
+                    rt.ingest_many(out if self.wire is None else self.wire(out))
                     rt.advance(sim.t0 + sim.t)
                     for msg in rt.take_outbox():
                         sim.receive(msg)

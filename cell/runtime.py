@@ -22,6 +22,7 @@ from .blocks import RATE_NAMES, Block
 from .channels import INVALID, OK, STALE, Channel, History
 from .dbc import DECODE_ERROR_KINDS, CellDatabase, FrameDecodeError
 from .errors import ConfigError, UnknownBlockError
+from .streams import StreamLayout, StreamTracker, find_streams
 
 _EPS = 1e-9
 
@@ -62,8 +63,24 @@ class Rates:
         return 1.0 / getattr(self, name)
 
 
+class _StreamRoute:
+    """One sample stream in the runtime: its layout, its order tracker and its consumers."""
+
+    __slots__ = ("layout", "tracker", "blocks")
+
+    def __init__(self, layout: StreamLayout, window: int) -> None:
+        self.layout = layout
+        self.tracker = StreamTracker(layout, window=window)
+        self.blocks: list[Block] = []
+
+
 class Runtime:
     """Channels, blocks and the tick scheduler of one cell.
+
+    Blocks that declare sample :attr:`~cell.blocks.Block.streams` also get every sample of
+    those crank-angle streams (:mod:`cell.streams`), in angle order, as each frame is
+    applied (between ticks, on bus time); lost, reordered and late frames are counted per
+    stream in :meth:`health` and gaps are reported to the blocks (:meth:`Block.gap`).
 
     Parameters
     ----------
@@ -75,6 +92,9 @@ class Runtime:
         FAS/MED/SLO rates. History and output rows are taken at MED ticks.
     history_s:
         Length of each channel's history ring buffer, in seconds of bus time.
+    stream_window:
+        Frames of a sample stream that may arrive ahead of a missing one before it is
+        declared lost (a reordering this deep is put right).
     """
 
     def __init__(
@@ -83,6 +103,7 @@ class Runtime:
         blocks: Iterable[Block] = (),
         rates: Rates | None = None,
         history_s: float = 600.0,
+        stream_window: int = 2,
     ) -> None:
         self.db = db
         self.rates = rates or Rates()
@@ -111,6 +132,10 @@ class Runtime:
         self._next_due: float | None = None
         # an input goes stale by the third MED tick after its frames stop
         self._stale_floor = 1.5 / self.rates.MED
+        #: frame key -> the sample stream it carries, for streams some block consumes
+        self._streams: dict[tuple[int, bool], _StreamRoute] = {}
+        self._stream_window = stream_window
+        self._layouts: dict[str, StreamLayout] | None = None
         for block in blocks:
             self.add_block(block)
 
@@ -132,7 +157,10 @@ class Runtime:
                         f"{block.name} cannot produce {out}: it is a bus input sent by "
                         f"{', '.join(self.db.message(info.message).senders) or 'another node'}"
                     )
+            layouts = [self._stream_layout(name, block.name) for name in block.streams]
             self.blocks[block.name] = block
+            for layout in layouts:
+                self._stream_route(layout).blocks.append(block)
             for out in block.outputs:
                 self.producer[out] = block.name
                 unit = self.db.signals[out].unit if out in self.db.signals else ""
@@ -147,11 +175,52 @@ class Runtime:
         with self.lock:
             block = self.block(name)
             del self.blocks[name]
+            for key, route in list(self._streams.items()):
+                route.blocks = [b for b in route.blocks if b is not block]
+                if not route.blocks:
+                    del self._streams[key]
             for out in block.outputs:
                 self.producer.pop(out, None)
                 self._channels.pop(out, None)
                 self._history.drop(out)
             return block
+
+    def _stream_layout(self, stream: str, block: str) -> StreamLayout:
+        """The layout of a sample stream the DBC defines; refuse one it does not."""
+        if self._layouts is None:
+            self._layouts = find_streams(self.db.messages)
+        layout = self._layouts.get(stream)
+        if layout is None:
+            raise ConfigError(f"{block} consumes sample stream {stream!r}, which no DBC message "
+                              f"carries; streams: {', '.join(sorted(self._layouts)) or 'none'}")
+        return layout
+
+    def _stream_route(self, layout: StreamLayout) -> _StreamRoute:
+        m = self.db.message(layout.message)
+        key = (m.frame_id, bool(m.is_extended_frame))
+        route = self._streams.get(key)
+        if route is None:
+            route = self._streams[key] = _StreamRoute(layout, self._stream_window)
+        return route
+
+    def _ingest_stream(self, route: _StreamRoute, message: Any, data: bytes, ts: float) -> None:
+        """Hand a stream frame's samples, in angle order, to the blocks that consume it."""
+        try:
+            values = self.db.decode_payload(message, bytes(data))
+        except FrameDecodeError as exc:
+            self.decode_errors[exc.kind] += 1
+            return
+        index, samples = route.layout.unpack(values)
+        name = route.layout.name
+        for event in route.tracker.push(index, samples, ts):
+            for block in route.blocks:
+                try:
+                    if event[0] == "samples":
+                        block.samples(name, event[1], event[2], event[3])
+                    else:
+                        block.gap(name, event[1], event[2], event[3])
+                except ArithmeticError:
+                    self.block_errors[block.name] += 1
 
     def block(self, name: str, family: str | None = None) -> Block:
         block = self.blocks.get(name)
@@ -208,6 +277,7 @@ class Runtime:
         n = 0
         by_id = self.db._by_id
         pending = self._pending
+        streams = self._streams
         frame_times = self._frame_times
         with self.lock:
             try:
@@ -231,6 +301,10 @@ class Runtime:
                         except FrameDecodeError as exc:
                             self.decode_errors[exc.kind] += 1
                         continue
+                    if streams:
+                        route = streams.get(key)
+                        if route is not None:
+                            self._ingest_stream(route, message, msg.data, ts)
                     prev = pending.get(key)
                     if prev is None or ts >= prev[1]:
                         pending[key] = (message, ts, msg.data)
@@ -390,6 +464,7 @@ class Runtime:
                 "decode_errors": dict(self.decode_errors),
                 "late_frames": self.late_frames,
                 "block_errors": dict(self.block_errors),
+                "streams": {r.layout.name: r.tracker.counts.as_dict() for r in self._streams.values()},
                 "last_frame_time": self.last_frame_time,
                 "bus_time": self.now,
             }

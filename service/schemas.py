@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 
 class ChannelOut(BaseModel):
@@ -41,6 +41,11 @@ class HealthOut(BaseModel):
     last_frame_time: float | None
     bus_time: float | None
     runtime_running: bool
+    streams: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="per crank-angle sample stream consumed by a block: frames, samples, "
+                    "reordered (put back in order), late (dropped), lost_frames, gaps and the "
+                    "last gap")
 
 
 class BlockOut(BaseModel):

@@ -69,7 +69,7 @@ def simulate(seed: int = 0, hold: float = 8.0, rate_hz: float = 100.0, progress:
 
     cycle = cycle or throttle_steps_cycle(hold)
     db = load()
-    plant = si_turbo(cycle, seed)
+    plant = si_turbo(cycle, seed, crank=False)
     sim = Simulator(plant, db)
     rt = Runtime(db, rates=Rates(FAS=rate_hz, MED=rate_hz, SLO=1.0), history_s=1.0)
     rows: list[list[float]] = []

@@ -96,7 +96,7 @@ def record(osc_true: float = 1.0, duration: float | None = None, *, cycle: str =
     from tqdm import tqdm
 
     db = dbc_mod.load()
-    plant = si_turbo(cycle, seed, osc=osc_true, osc_drift=osc_drift)
+    plant = si_turbo(cycle, seed, osc=osc_true, osc_drift=osc_drift, crank=False)
     sim = Simulator(plant, db)
     rt = Runtime(db, list(runtime_blocks))
     duration = plant.duration if duration is None else float(duration)

@@ -14,6 +14,8 @@ import math
 from collections.abc import Mapping
 from typing import ClassVar
 
+import numpy as np
+
 from ..errors import ConfigError
 
 
@@ -34,6 +36,9 @@ class Plant:
 
     inputs: ClassVar[tuple[str, ...]] = ()
     outputs: ClassVar[tuple[str, ...]] = ()
+    #: crank-angle sample streams (:mod:`cell.streams`) the plant produces: samples that
+    #: it hands out with :meth:`take_samples` rather than as held outputs
+    streams: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, name: str, period: float) -> None:
         if not period > 0 or not math.isfinite(period):
@@ -54,6 +59,14 @@ class Plant:
     def output(self) -> dict[str, float]:
         """The current value of every output."""
         raise NotImplementedError
+
+    def take_samples(self) -> dict[str, tuple[int, np.ndarray, np.ndarray]]:
+        """The stream samples produced since the last call, per stream in :attr:`streams`.
+
+        Each is ``(index, values, times)``: the global index of the first sample (its angle
+        is ``index x step``), the consecutive samples, and each sample's simulation time.
+        """
+        return {}
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r}, period={self.period:g})"

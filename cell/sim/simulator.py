@@ -12,11 +12,13 @@ import logging
 import math
 
 import can
+import numpy as np
 from cantools.database.can import Message
 
 from ..dbc import CellDatabase, FrameDecodeError
 from ..errors import ConfigError
 from ..plant.composition import Composition
+from ..streams import StreamLayout, find_streams
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +68,17 @@ class Simulator:
                                   "cycle time (GenMsgCycleTime)")
             period = max(1, round(m.cycle_time / 1000.0 / plant.dt))
             self.schedule.append((m, period, names))
+        #: sample streams the plants produce: (plant, layout, samples not yet in a frame)
+        self.streams: list[tuple[object, StreamLayout, list]] = []
+        layouts = find_streams([m for m in db.messages if NODE in (m.senders or [])])
+        for p in plant.plants:
+            for name in p.streams:
+                layout = layouts.get(name)
+                if layout is None:
+                    raise ConfigError(f"engine {plant.name}: plant {p.name} produces sample stream "
+                                      f"{name}, which no SIM message of the DBC carries")
+                skipped = [s for s in skipped if s != layout.message]
+                self.streams.append((p, layout, [None, np.empty(0), np.empty(0)]))
         if skipped:
             log.debug("engine %s sends none of %s", plant.name, ", ".join(skipped))
         #: received messages: frame key -> the signals of it that a plant consumes
@@ -96,12 +109,47 @@ class Simulator:
         message is sent at ``t`` = 0). Call once per step, before :meth:`step`.
         """
         k = self.plant.k
+        out = self._stream_frames() if self.streams else []
         due = [(m, names) for m, period, names in self.schedule if k % period == 0]
         if not due:
-            return []
+            return out
         values = self.plant.signals
         ts = self.t0 + self.plant.t
-        return [self.db.encode(m.name, {s: values[s] for s in names}, ts) for m, names in due]
+        return out + [self.db.encode(m.name, {s: values[s] for s in names}, ts) for m, names in due]
+
+    def _stream_frames(self) -> list[can.Message]:
+        """Frames of the stream samples produced so far, ``n`` whole samples per frame.
+
+        A frame starts at a sample whose index is a multiple of ``n`` and is stamped with
+        its last sample's time; samples of an incomplete frame wait for the next call.
+        Stream frames are stamped at or before the current step, so they come first.
+        """
+        frames: list[tuple[float, int, can.Message]] = []
+        taken: dict[int, dict] = {}
+        for p, layout, pend in self.streams:
+            if id(p) not in taken:
+                taken[id(p)] = p.take_samples()
+            got = taken[id(p)].get(layout.name)
+            if got is not None and len(got[1]):
+                index, vals, times = got
+                if pend[0] is None or pend[0] + len(pend[1]) != index:
+                    # start (or restart after a discontinuity) at the next frame boundary
+                    skip = (-index) % layout.n
+                    index, vals, times = index + skip, vals[skip:], times[skip:]
+                    pend[0], pend[1], pend[2] = index, np.empty(0), np.empty(0)
+                pend[1] = np.concatenate([pend[1], vals])
+                pend[2] = np.concatenate([pend[2], times])
+            n = layout.n
+            whole = (len(pend[1]) // n) * n
+            for j in range(0, whole, n):
+                ts = self.t0 + float(pend[2][j + n - 1])
+                msg = self.db.encode(layout.message, layout.frame_values(pend[0] + j, pend[1][j:j + n]), ts)
+                frames.append((ts, len(frames), msg))
+            if whole:
+                pend[0] += whole
+                pend[1], pend[2] = pend[1][whole:], pend[2][whole:]
+        frames.sort(key=lambda f: (f[0], f[1]))
+        return [f[2] for f in frames]
 
     def receive(self, msg: can.Message) -> bool:
         """Hand a received frame's signals to the plants that consume them; True if routed.

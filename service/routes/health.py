@@ -8,7 +8,8 @@ router = APIRouter(tags=["health"])
 
 @router.get("/health", response_model=HealthOut)
 def health(cell: CellDep) -> HealthOut:
-    """Bus, frame rate, decode errors by kind and the time of the last frame."""
+    """Bus, frame rate, decode errors by kind, the time of the last frame, and the sample
+    streams' order and loss counts."""
     h = cell.runtime.health()
     return HealthOut(
         status="ok" if h["frames"] else "waiting",

@@ -147,7 +147,7 @@ def test_observer_runs_in_the_runtime_and_puts_its_estimates_on_the_bus():
     from cell.sim.simulator import Simulator
 
     db = load()
-    sim = Simulator(si_turbo("steady", 0), db)
+    sim = Simulator(si_turbo("steady", 0, crank=False), db)
     rt = Runtime(db, [AirPathObserver()], rates=Rates(FAS=100.0, MED=10.0))
     sent = []
     receive = sim.receive

@@ -134,7 +134,7 @@ def test_sim_writes_the_si_turbo_frames_at_their_cycle_times(tmp_path):
 
     db = load()
     n = write_log(tmp_path / "si.log", "ftp", seed=0, duration=2.0, engine="si-turbo",
-                  progress=False, db=db)
+                  crank="off", progress=False, db=db)  # the crank frames: test_cylinders.py
     frames = list(can.LogReader(str(tmp_path / "si.log")))
     assert len(frames) == n
     names = defaultdict(int)

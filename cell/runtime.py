@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import math
 import threading
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -107,6 +108,16 @@ class Runtime:
         self.last_frame_time: float | None = None
         self.last_tick_time: float | None = None
         self._frame_times: collections.deque[float] = collections.deque(maxlen=20_000)
+        # -- metrics (GET /metrics): counted here, formatted by service.metrics ------------
+        #: frames received per (arbitration ID, extended), known or not
+        self.frames_by_id: dict[tuple[int, bool], int] = {}
+        #: ticks whose work (block steps and MED listeners) took longer than their period
+        self.tick_overruns = 0
+        self.ticks = 0
+        #: wall seconds of the slowest tick so far
+        self.tick_seconds_max = 0.0
+        #: per block: [wall seconds spent in step, steps]
+        self.step_time: dict[str, list[float]] = {}
         self._next_index: dict[str, int] | None = None
         self._next_due: float | None = None
         # an input goes stale by the third MED tick after its frames stop
@@ -209,6 +220,7 @@ class Runtime:
         by_id = self.db._by_id
         pending = self._pending
         frame_times = self._frame_times
+        by_id_count = self.frames_by_id
         with self.lock:
             try:
                 for msg in msgs:
@@ -218,12 +230,13 @@ class Runtime:
                     if nxt is None or ts > nxt + _EPS:
                         self._run_ticks(ts, inclusive=False)
                     frame_times.append(ts)
+                    key = (msg.arbitration_id, bool(msg.is_extended_id))
+                    by_id_count[key] = by_id_count.get(key, 0) + 1
                     last = self.last_frame_time
                     if last is None or ts >= last:
                         self.last_frame_time = ts
                     else:
                         self.late_frames += 1
-                    key = (msg.arbitration_id, bool(msg.is_extended_id))
                     message = by_id.get(key)
                     if message is None or len(msg.data) != message.length:
                         try:
@@ -289,13 +302,23 @@ class Runtime:
             ticking = frozenset(r for (tt, r) in due if abs(tt - t) <= _EPS)
             for r in ticking:
                 self._next_index[r] += 1
+            started = time.perf_counter()
             if "MED" in ticking or any(not ticking.isdisjoint(b.rates) for b in self.blocks.values()):
                 self._flush()  # a FAS tick with no FAS block reads nothing: skip the decode
                 self._tick(ticking, t)
             self.last_tick_time = t
             if "MED" in ticking:
                 self._after_med_tick(t)
+            self._count_tick(time.perf_counter() - started, ticking)
         self._next_due = min(self._next_index[r] / getattr(self.rates, r) for r in RATE_NAMES)
+
+    def _count_tick(self, seconds: float, ticking: frozenset[str]) -> None:
+        """Count a tick, and an overrun when its work took longer than its period."""
+        self.ticks += 1
+        if seconds > self.tick_seconds_max:
+            self.tick_seconds_max = seconds
+        if seconds > min(self.rates.period(r) for r in ticking):
+            self.tick_overruns += 1
 
     def _tick(self, ticking: frozenset[str], t: float) -> None:
         updated: set[str] = set()
@@ -318,6 +341,7 @@ class Runtime:
                 for out in block.outputs:
                     self._channels[out].mark(*bad)
                 continue
+            started = time.perf_counter()
             try:
                 outputs = block.step(t, values, ticking)
             except ArithmeticError as exc:
@@ -325,6 +349,12 @@ class Runtime:
                 for out in block.outputs:
                     self._channels[out].mark(INVALID, f"{type(exc).__name__}: {exc}")
                 continue
+            finally:
+                spent = self.step_time.get(block.name)
+                if spent is None:
+                    spent = self.step_time[block.name] = [0.0, 0]
+                spent[0] += time.perf_counter() - started
+                spent[1] += 1
             reasons = block.errors
             for out, value in outputs.items():
                 ch = self._channels[out]

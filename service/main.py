@@ -9,7 +9,7 @@ from cell.context import Cell
 
 from . import errors
 from .metrics import FrameRates
-from .routes import channels, filters, health, metrics, page, scripts, stream
+from .routes import channels, filters, health, metrics, page, scripts, simulator, stream
 from .stream import StreamHub
 from .routes.blocks import block_router
 
@@ -40,5 +40,6 @@ def create_app(cell: Cell) -> FastAPI:
     app.include_router(scripts.router)
     app.include_router(stream.router)
     app.include_router(metrics.router)
+    app.include_router(simulator.router)
     app.include_router(page.router)
     return app

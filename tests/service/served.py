@@ -1,0 +1,30 @@
+"""A real uvicorn server on a free port, in a thread of the test process (no multicast)."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+
+import uvicorn
+
+
+@contextlib.contextmanager
+def served(app, ws: str = "websockets"):
+    """Serve ``app`` on 127.0.0.1 and a free port; yields the base URL (``http://127.0.0.1:PORT``)."""
+    config = uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", ws=ws,
+                            lifespan="off")
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, name="test-uvicorn", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("uvicorn did not start")
+        time.sleep(0.02)
+    port = server.servers[0].sockets[0].getsockname()[1]
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(10)

@@ -28,8 +28,8 @@ from typing import Any
 from cell.channels import OK
 from cell.runtime import Runtime
 
-#: records kept for all clients (a minute at 10 Hz)
-RING = 600
+#: records kept for all clients (10 s at 10 Hz)
+RING = 100
 #: records a client may lag behind before the oldest are skipped and counted
 BACKLOG = 50
 #: most patterns one subscription may hold
@@ -88,13 +88,13 @@ class Client:
         self.sent = 0
         self.event = asyncio.Event()
         self.loop = asyncio.get_running_loop()
-        self._names: tuple[frozenset[str], tuple[str, ...]] | None = None
+        self._names: tuple[tuple[frozenset[str], tuple[str, ...]], tuple[str, ...]] | None = None
 
     def names(self, available: Iterable[str]) -> tuple[str, ...]:
         """The channels the patterns match among ``available``, sorted (cached per channel set)."""
         avail = frozenset(available)
-        if self._names is None or self._names[0] != avail:
-            self._names = (avail, match(self.patterns, avail))
+        if self._names is None or self._names[0] != (avail, self.patterns):
+            self._names = ((avail, self.patterns), match(self.patterns, avail))
         return self._names[1]
 
     def take(self) -> list[Record]:

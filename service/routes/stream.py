@@ -183,9 +183,8 @@ async def _sse(request: Request, hub: StreamHub, client: Client, count: int | No
             before = client.dropped
             records = client.take()
             if client.dropped > before:
-                yield (f"event: dropped\ndata: " + json.dumps(
-                    {"type": "dropped", "count": client.dropped - before, "total": client.dropped})
-                       + "\n\n")
+                told = {"type": "dropped", "count": client.dropped - before, "total": client.dropped}
+                yield f"event: dropped\ndata: {json.dumps(told)}\n\n"
             for rec in records:
                 yield f"event: data\nid: {rec.seq}\ndata: {client.message(rec)}\n\n"
                 sent += 1

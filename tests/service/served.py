@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import socket
 import threading
 import time
 
@@ -10,8 +11,13 @@ import uvicorn
 
 
 @contextlib.contextmanager
-def served(app, ws: str = "websockets"):
-    """Serve ``app`` on 127.0.0.1 and a free port; yields the base URL (``http://127.0.0.1:PORT``)."""
+def served(app, ws: str = "auto", sndbuf: int | None = None):
+    """Serve ``app`` on 127.0.0.1 and a free port; yields the base URL (``http://127.0.0.1:PORT``).
+
+    ``sndbuf`` caps the kernel's send buffer of every accepted connection (they inherit it
+    from the listening socket), so a client that stops reading backs up into the server
+    within a few kB rather than megabytes of kernel buffers.
+    """
     config = uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", ws=ws,
                             lifespan="off")
     server = uvicorn.Server(config)
@@ -22,7 +28,10 @@ def served(app, ws: str = "websockets"):
         if time.monotonic() > deadline or not thread.is_alive():
             raise RuntimeError("uvicorn did not start")
         time.sleep(0.02)
-    port = server.servers[0].sockets[0].getsockname()[1]
+    sock = server.servers[0].sockets[0]
+    if sndbuf:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, sndbuf)
+    port = sock.getsockname()[1]
     try:
         yield f"http://127.0.0.1:{port}"
     finally:

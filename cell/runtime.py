@@ -19,6 +19,7 @@ from typing import Any
 
 import can
 
+from . import units
 from .blocks import RATE_NAMES, Block
 from .channels import INVALID, OK, STALE, Channel, History
 from .dbc import DECODE_ERROR_KINDS, CellDatabase, FrameDecodeError
@@ -146,11 +147,7 @@ class Runtime:
             self.blocks[block.name] = block
             for out in block.outputs:
                 self.producer[out] = block.name
-                unit = self.db.signals[out].unit if out in self.db.signals else ""
-                unit = unit or block.units.get(out, "")
-                if not unit and block.keeps_input_unit and len(block.inputs) == 1:
-                    src = self.db.signals.get(block.inputs[0]) or self._channels.get(block.inputs[0])
-                    unit = src.unit if src else ""  # a filter keeps its input's unit
+                unit = units.resolve(self, block, out)  # DBC, declared, else its one input's
                 ch = self._channel(out, source=block.name)
                 ch.unit = ch.unit or unit
 

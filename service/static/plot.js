@@ -227,7 +227,9 @@ class TimePlot {
       const y = scales.get(h.unit).y(v);
       g.setLineDash([6, 4]); g.strokeStyle = "#24292f"; g.lineWidth = 1;
       g.beginPath(); g.moveTo(left, y); g.lineTo(right, y); g.stroke(); g.setLineDash([]);
-      g.fillStyle = "#24292f"; g.textAlign = "left"; g.textBaseline = "bottom"; g.fillText(`${h.label} ${fmtNum(v)}`, left + 4, y - 2);
+      const below = y - 14 < top;  // a line at the top keeps its label inside the frame
+      g.fillStyle = "#24292f"; g.textAlign = "left"; g.textBaseline = below ? "top" : "bottom";
+      g.fillText(`${h.label} ${fmtNum(v)}`, left + 4, below ? y + 2 : y - 2);
     }
     g.restore();
     if (this._drag) {

@@ -80,10 +80,15 @@ class Page:
 @pytest.fixture(scope="module")
 def diesel(chromium, tmp_path_factory):
     """The default engine with its filters, controllers and shipped scripts, and the page on it."""
-    with live_cell(tmp_path_factory.mktemp("diesel")) as (url, cell):
-        deadline = time.monotonic() + 30
-        while cell.runtime.ticks < 30:  # a few seconds of history before the page loads
+    # the transient duty cycle at twice real time: load steps to see within seconds
+    with live_cell(tmp_path_factory.mktemp("diesel"), duty="transient", speed=2.0) as (url, cell):
+        rt, deadline = cell.runtime, time.monotonic() + 60
+        while rt.now is None:
             assert time.monotonic() < deadline, "the live cell did not start"
+            time.sleep(0.1)
+        start = rt.now
+        while rt.now - start < 10.0:  # some history before the page loads
+            assert time.monotonic() < deadline, "the live cell does not advance"
             time.sleep(0.2)
         context = chromium("diesel-profile")
         try:
@@ -224,13 +229,14 @@ def test_screenshot_is_saved_as_an_artifact(diesel):
     page = p.page
     page.reload()
     page.wait_for_function("window.TC && TC.ready && TC.messages > 2")
-    page.select_option("#window", "60")
-    page.wait_for_timeout(1500)
+    page.select_option("#window", "30")
+    page.wait_for_timeout(2000)
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     shot = ARTIFACTS / "dashboard.png"
     page.screenshot(path=str(shot), full_page=True)
     assert shot.stat().st_size > 20_000 and shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     if os.environ.get("TESTCELL_UPDATE_FIGURES") == "1":
+        (ROOT / "docs" / "figures").mkdir(parents=True, exist_ok=True)
         shutil.copyfile(shot, ROOT / "docs" / "figures" / "dashboard.png")
 
 

@@ -392,8 +392,11 @@ async function buildSimulator() {
   box.innerHTML = "<h3>scenario</h3>";
   for (const key of keys) {
     const row = document.createElement("label"); row.className = "param";
+    const range = key.minimum !== undefined && key.minimum !== null ? `${key.minimum}..${key.maximum} ` : "";
+    const start = key.initial !== undefined && key.initial !== null ? ` (start ${key.initial})` : "";
+    row.title = key.comment || key.signal || "";
     row.innerHTML = `${esc(key.key)}<span><input type="text" data-scenario="${esc(key.key)}" ` +
-      `placeholder="${esc(key.unit || "")}"></span>`;
+      `placeholder="${esc(range + (key.unit || "") + start)}"></span>`;
     box.appendChild(row);
   }
   const btn = document.createElement("button"); btn.type = "button"; btn.textContent = "send";
@@ -404,7 +407,7 @@ async function buildSimulator() {
     box.querySelectorAll("input[data-scenario]").forEach(i => { if (i.value.trim()) body[i.dataset.scenario] = parseInput(i.value); });
     const r2 = await api("POST", "/scenario", body);
     msg.className = r2.ok ? "msg ok" : "msg error";
-    msg.textContent = r2.ok ? "sent" : `refused (${r2.status}): ${errorText(r2.data)}`;
+    msg.textContent = r2.ok ? `sent: ${JSON.stringify(body)}` : `refused (${r2.status}): ${errorText(r2.data)}`;
   };
 }
 

@@ -24,8 +24,9 @@ _channels = itertools.count()
 
 
 @contextlib.contextmanager
-def live_cell(tmp_path, **options):
-    """Yield ``(base_url, cell)`` of a cell running ``Settings(**options)`` on a virtual bus."""
+def live_cell(tmp_path, routers=(), **options):
+    """Yield ``(base_url, cell)`` of a cell running ``Settings(**options)`` on a virtual bus
+    (with ``routers`` added to its app)."""
     registry.load_plugins()
     channel = f"test-{os.getpid()}-{next(_channels)}"
     settings = replace(Settings(**options), bus=f"virtual:{channel}",
@@ -43,6 +44,8 @@ def live_cell(tmp_path, **options):
     cell = Cell(runtime=runtime, bus=str(spec), tuning=store, live=live,
                 extra={"scripts": scripts, "settings": settings})
     app = create_app(cell)
+    for router in routers:
+        app.include_router(router)
     thread.start()
     live.start()
     try:

@@ -254,8 +254,34 @@ def toy_plugin(monkeypatch):
         importlib.import_module(name)
 
 
+def scenario_stand_in(sent: list):
+    """``GET``/``POST /scenario`` as the scenario work (issue 8) defines them, over the toy's
+    force offset, so the page's scenario control is proven here without that branch."""
+    from fastapi import APIRouter, Body, HTTPException
+
+    router = APIRouter()
+    key = {"key": "toy_force_offset", "signal": "TOY_FORCE_OFFSET", "minimum": -10.0, "maximum": 10.0,
+           "unit": "N", "initial": 0.0, "comment": "a constant force added to the drive"}
+
+    @router.get("/scenario")
+    def keys():
+        return [key]
+
+    @router.post("/scenario")
+    def send(values: dict = Body(...)):
+        v = values.get("toy_force_offset")
+        if set(values) != {"toy_force_offset"} or not isinstance(v, (int, float)) or not -10 <= v <= 10:
+            raise HTTPException(422, detail=[{"loc": ["body", "toy_force_offset"], "type": "value_error",
+                                              "msg": "toy_force_offset must be a number in -10..10 N"}])
+        sent.append(values)
+        return {"sent": [{"message": "TOY_CMD", "signals": {"TOY_FORCE_OFFSET": v}}]}
+
+    return router
+
+
 def test_observer_panels_are_built_from_the_api_grouped_by_unit(chromium, toy_plugin, tmp_path):
-    with live_cell(tmp_path, engine="toy") as (url, cell):
+    sent: list = []
+    with live_cell(tmp_path, routers=[scenario_stand_in(sent)], engine="toy") as (url, cell):
         context = chromium("toy-profile")
         try:
             p = Page(context, url)
@@ -280,5 +306,15 @@ def test_observer_panels_are_built_from_the_api_grouped_by_unit(chromium, toy_pl
             assert fams == [{"key": "AFR_CYL_#_EST", "members": [
                 {"name": f"AFR_CYL_{k}_EST", "label": str(k), "k": k} for k in (1, 2, 3, 10)]}]
             assert p.errors == []
+            # the scenario control appears when the API lists scenario keys, and posts them
+            assert page.is_visible("#scenario")
+            page.fill('input[data-scenario="toy_force_offset"]', "50")
+            page.click("#scenario button")
+            page.wait_for_selector("#scenario .msg.error")
+            assert "toy_force_offset must be a number in -10..10 N" in page.inner_text("#scenario .msg")
+            page.fill('input[data-scenario="toy_force_offset"]', "2.5")
+            page.click("#scenario button")
+            page.wait_for_selector("#scenario .msg.ok")
+            assert sent == [{"toy_force_offset": 2.5}]
         finally:
             context.close()

@@ -157,6 +157,8 @@ class StreamHub:
         self.clients: set[Client] = set()
         self.connections_total = 0
         self.dropped_total = 0  # over clients that have left; live ones add their own
+        #: set by :meth:`close`: every stream ends (the server is shutting down)
+        self.closed = False
         self._lock = threading.Lock()
         runtime.tick_listeners.append(self.on_tick)
 
@@ -177,6 +179,17 @@ class StreamHub:
             try:
                 loop.call_soon_threadsafe(self._wake, loop)
             except RuntimeError:  # a loop that closed under us
+                pass
+
+    def close(self) -> None:
+        """End every stream (at server shutdown: an event stream never ends by itself)."""
+        with self._lock:
+            self.closed = True
+            loops = {c.loop for c in self.clients}
+        for loop in loops:
+            try:
+                loop.call_soon_threadsafe(self._wake, loop)
+            except RuntimeError:
                 pass
 
     def _wake(self, loop: asyncio.AbstractEventLoop) -> None:

@@ -134,6 +134,9 @@ async def _writer(ws: WebSocket, client: Client) -> None:
     while True:
         await client.event.wait()
         client.event.clear()
+        if client.hub.closed:
+            await ws.close(1001, "the cell is shutting down")
+            return
         before = client.dropped
         records = client.take()
         if not client.patterns:
@@ -171,7 +174,7 @@ async def _sse(request: Request, hub: StreamHub, client: Client, count: int | No
         yield f"event: subscribed\ndata: {json.dumps(_subscribed(hub, client))}\n\n"
         yield f"event: snapshot\ndata: {json.dumps(_snapshot(hub, client))}\n\n"
         sent = 0
-        while count is None or sent < count:
+        while (count is None or sent < count) and not hub.closed:
             try:
                 await asyncio.wait_for(client.event.wait(), KEEPALIVE_S)
             except TimeoutError:
@@ -180,6 +183,8 @@ async def _sse(request: Request, hub: StreamHub, client: Client, count: int | No
                 yield ": keep-alive\n\n"
                 continue
             client.event.clear()
+            if hub.closed:
+                return
             before = client.dropped
             records = client.take()
             if client.dropped > before:

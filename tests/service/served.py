@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import contextlib
+import signal
 import socket
 import threading
 import time
 
 import uvicorn
+
+from service.serve import Server
 
 
 @contextlib.contextmanager
@@ -20,7 +23,7 @@ def served(app, ws: str = "auto", sndbuf: int | None = None):
     """
     config = uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", ws=ws,
                             lifespan="off")
-    server = uvicorn.Server(config)
+    server = Server(config)
     thread = threading.Thread(target=server.run, name="test-uvicorn", daemon=True)
     thread.start()
     deadline = time.monotonic() + 10
@@ -35,5 +38,5 @@ def served(app, ws: str = "auto", sndbuf: int | None = None):
     try:
         yield f"http://127.0.0.1:{port}"
     finally:
-        server.should_exit = True
+        server.handle_exit(signal.SIGTERM, None)  # as SIGTERM does: streams end, then the server
         thread.join(10)

@@ -9,12 +9,14 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import signal
 import threading
 import time
 import tracemalloc
 
 import httpx
 import pytest
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from cell.context import Cell
@@ -56,7 +58,8 @@ def cell(db):
 
 @pytest.fixture
 def url(cell):
-    with served(create_app(cell)) as base:
+    app = cell.extra["app"] = create_app(cell)
+    with served(app) as base:
         yield base
 
 
@@ -151,6 +154,42 @@ def test_sse_serves_the_same_data_to_curl(url, cell, db):
     assert [d["seq"] for d in data] == list(range(data[0]["seq"], data[0]["seq"] + 4))
     assert all(d["values"]["EXH_BP_R"][1] == "ok" for d in data)
     assert all(b["time"] - a["time"] == pytest.approx(0.1) for a, b in zip(data, data[1:]))
+
+
+def test_streams_end_when_the_server_is_asked_to_stop(url, cell, db):
+    """An event stream never ends by itself: on SIGTERM the server ends them (service.serve)."""
+    lines: list[str] = []
+    done = threading.Event()
+
+    def read():
+        with httpx.stream("GET", url + "/stream/sse", params={"channels": "EXH_BP_R"}, timeout=30) as r:
+            for line in r.iter_lines():
+                lines.append(line)
+        done.set()
+
+    threading.Thread(target=read, daemon=True).start()
+    with connect(ws_url(url, "?channels=EXH_BP_R")) as ws:
+        recv(ws, "subscribed")
+        deadline = time.monotonic() + 5
+        while not any(line.startswith("event: snapshot") for line in lines):
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        cell.extra["app"].state.hub.close()  # what Server.handle_exit does first
+        assert done.wait(5), "the event stream did not end"
+        with pytest.raises(ConnectionClosed) as closed:
+            while True:
+                ws.recv(timeout=5)
+        assert closed.value.rcvd.code == 1001
+
+
+def test_sigterm_to_the_server_closes_the_apps_streams(cell):
+    import uvicorn
+
+    from service.serve import Server
+
+    app = create_app(cell)
+    Server(uvicorn.Config(app)).handle_exit(signal.SIGTERM, None)
+    assert app.state.hub.closed
 
 
 @pytest.mark.parametrize("query, words", [({}, "channels"), ({"channels": " , "}, "names no channel"),

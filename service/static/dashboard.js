@@ -277,6 +277,7 @@ function tuningCard(section, b) {
     const row = document.createElement("label"); row.className = "param";
     const input = document.createElement("input");
     if (typeof v === "boolean") { input.type = "checkbox"; input.checked = v; } else { input.type = "text"; input.value = shown(v); }
+    if (typeof v === "string" && TC.meta.has(v)) input.setAttribute("list", "channel-names");  // e.g. feedback
     input.name = p; input.dataset.param = p;
     const applied = document.createElement("span"); applied.className = "applied"; applied.dataset.applied = p;
     applied.textContent = `applied: ${shown(v)}`;
@@ -315,6 +316,9 @@ function tuningCard(section, b) {
 
 function buildTuning() {
   const root = $("tuning");
+  const names = document.createElement("datalist"); names.id = "channel-names";
+  for (const n of [...TC.meta.keys()].sort()) names.appendChild(new Option(n));
+  root.appendChild(names);
   for (const section of ["filters", "observers", "controllers"]) {
     if (!TC.blocks[section].length) continue;
     const h = document.createElement("h3"); h.textContent = section; root.appendChild(h);

@@ -199,6 +199,41 @@ def test_a_bad_Q_typed_on_the_page_shows_the_servers_error_and_the_old_value_sta
     assert p.errors == [] or all("422" in e for e in p.errors)
 
 
+def test_controller_setpoint_feedback_and_enable_from_the_page(diesel):
+    url, cell, p = diesel
+    page = p.page
+    card = _card(page, "PI_L")
+    before = httpx.get(url + "/controllers/PI_L", timeout=5).json()["params"]
+    assert before["enable"] is False
+    card.locator('input[data-param="setpoint"]').fill("700")
+    card.locator('input[data-param="feedback"]').fill("EXH_BP_L_MAF")
+    card.locator('input[data-param="enable"]').check()
+    card.locator("button.apply").click()
+    page.wait_for_function("""document.querySelector('.block[data-block="PI_L"] .msg')
+                              .textContent.startsWith('applied')""")
+    got = httpx.get(url + "/controllers/PI_L", timeout=5).json()
+    assert (got["params"]["setpoint"], got["params"]["feedback"], got["params"]["enable"]) == \
+        (700.0, "EXH_BP_L_MAF", True)
+    # the plot's setpoint line follows what the server applied
+    line = page.evaluate("TC.plots.find(p => p.el.dataset.panel === 'controller-PI_L').hlines[0].value()")
+    assert line == 700.0
+    # the next values: the loop's error is the new feedback channel less the new setpoint
+    # ("measurement minus setpoint"), and its demand now goes on the bus
+    rt, block = cell.runtime, cell.runtime.blocks["PI_L"]
+    t_applied = rt.now
+    deadline = time.monotonic() + 10
+    while True:
+        with rt.lock:
+            if block._t_last is not None and block._t_last > t_applied + 0.15:
+                error, feedback, on_bus = block.error, rt.channels["EXH_BP_L_MAF"].value, block.on_bus
+                break
+        assert time.monotonic() < deadline, "the controller did not step"
+        time.sleep(0.1)
+    assert error == pytest.approx(feedback - 700.0) and on_bus
+    httpx.patch(url + "/controllers/PI_L", json={k: before[k] for k in ("setpoint", "feedback", "enable")},
+                timeout=5).raise_for_status()
+
+
 BAD_SCRIPT = """// a script with a syntax error on line 4
 [formulas]
 public BAD_OUT

@@ -164,12 +164,14 @@ async def stream_sse(
     except SubscriptionError as exc:
         raise HTTPException(422, detail=[{"loc": ["query", "channels"], "type": "value_error",
                                           "msg": str(exc)}]) from None
-    client = hub.join(patterns, kind="sse")
-    return StreamingResponse(_sse(request, hub, client, count), media_type="text/event-stream",
+    return StreamingResponse(_sse(request, hub, patterns, count), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
-async def _sse(request: Request, hub: StreamHub, client: Client, count: int | None) -> AsyncIterator[str]:
+async def _sse(request: Request, hub: StreamHub, patterns: tuple[str, ...],
+               count: int | None) -> AsyncIterator[str]:
+    # joined here, not in the route: a client gone before the first byte never joins
+    client = hub.join(patterns, kind="sse")
     try:
         yield f"event: subscribed\ndata: {json.dumps(_subscribed(hub, client))}\n\n"
         yield f"event: snapshot\ndata: {json.dumps(_snapshot(hub, client))}\n\n"

@@ -310,11 +310,13 @@ class Runtime:
         self._next_due = min(self._next_index[r] / getattr(self.rates, r) for r in RATE_NAMES)
 
     def _count_tick(self, seconds: float, ticking: frozenset[str]) -> None:
-        """Count a tick, and an overrun when its work took longer than its period."""
+        """Count a tick, and an overrun when its work took longer than the period of the
+        fastest task that ticked with work to do (a FAS tick with no FAS block does none)."""
         self.ticks += 1
         if seconds > self.tick_seconds_max:
             self.tick_seconds_max = seconds
-        if seconds > min(self.rates.period(r) for r in ticking):
+        working = [r for r in ticking if r == "MED" or any(r in b.rates for b in self.blocks.values())]
+        if working and seconds > min(self.rates.period(r) for r in working):
             self.tick_overruns += 1
 
     def _tick(self, ticking: frozenset[str], t: float) -> None:

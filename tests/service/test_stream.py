@@ -313,7 +313,7 @@ def test_fifty_clients_get_every_tick_while_the_runtime_keeps_up(tmp_path):
             assert all(d == 0 for _, d, _ in seqs) and all(v >= 9 for _, _, v in seqs)
         # the runtime keeps up: the clients add no tick overruns to what the machine causes
         # without them (none, on a machine not busy with other work), and no lag
-        assert overruns <= baseline, (overruns, baseline)
+        assert overruns <= baseline, (overruns, baseline, rt.tick_seconds_max)
         assert lag < 0.5, lag
 
 

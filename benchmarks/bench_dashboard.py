@@ -17,6 +17,7 @@ Run: ``.venv/bin/python benchmarks/bench_dashboard.py [CLIENTS ...]`` (default 5
 from __future__ import annotations
 
 import asyncio
+import gc
 import json
 import math
 import sys
@@ -88,6 +89,7 @@ def fan_out(n: int, seconds: float = 8.0) -> dict:
     db = load()
     rt = Runtime(db, native_filters())
     feeder = Feeder(rt, db)
+    gc.freeze()  # as the live cell does at start (cell/live.py)
     feeder.thread.start()
     try:
         with served(create_app(Cell(runtime=rt, bus="virtual:bench"))) as url:

@@ -132,6 +132,78 @@ def test_plots_advance_as_frames_arrive(diesel):
     assert panel.screenshot() != shot
 
 
+def test_window_pause_and_zoom(diesel):
+    _, _, p = diesel
+    page = p.page
+    page.select_option("#window", "10")
+    rng = page.evaluate("TC.plots[0].range()")
+    assert rng[1] - rng[0] == pytest.approx(10)
+    page.click("#pause")
+    frozen = page.evaluate("TC.plots[0].range()")
+    n = page.evaluate("TC.messages")
+    page.wait_for_function(f"TC.messages >= {n + 3}")
+    assert page.evaluate("TC.plots[0].range()") == frozen  # data arrives, the view holds
+    page.click("#pause")
+    page.wait_for_function(f"TC.plots[0].range()[1] > {frozen[1]}")
+    # drag across the plot: the time axis zooms to the dragged span; double-click follows live
+    box = page.locator('[data-panel="filters-EXH_BP_R"] canvas').bounding_box()
+    y = box["y"] + box["height"] / 2
+    page.mouse.move(box["x"] + box["width"] * 0.3, y)
+    page.mouse.down()
+    page.mouse.move(box["x"] + box["width"] * 0.6, y, steps=5)
+    page.mouse.up()
+    zoom = page.evaluate("TC.view.zoom")
+    assert zoom is not None and 0 < zoom[1] - zoom[0] < 10
+    assert page.evaluate("TC.plots[1].range()") == zoom  # every plot shares the time axis
+    page.dblclick('[data-panel="filters-EXH_BP_R"] canvas')
+    assert page.evaluate("TC.view.zoom") is None
+    page.select_option("#window", "60")
+
+
+def test_a_channel_whose_frames_stop_shows_stale_in_the_table(chromium, db):
+    """A runtime fed by the test: the frames stop, bus time goes on, the table says stale."""
+    import math
+
+    from cell.context import Cell
+    from cell.estimators.filters import native_filters
+    from cell.runtime import Runtime
+    from service.main import create_app
+
+    from .served import served
+
+    rt = Runtime(db, native_filters())
+    t = [0.0]
+
+    def feed(seconds, frames=True):
+        end = t[0] + seconds
+        while t[0] < end - 1e-9:
+            if frames:
+                rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 680.0, "EXH_BP_R": 680 + math.sin(t[0])}, t[0]))
+            t[0] = round(t[0] + 0.01, 6)
+        rt.advance(t[0])
+
+    feed(3.0)
+    context = chromium("stale-profile")
+    with served(create_app(Cell(runtime=rt, bus="virtual:test"))) as url:
+        try:
+            page = context.new_page()
+            page.goto(url + "/")
+            page.wait_for_function("window.TC && TC.ready")
+            feed(0.5)
+            row = page.locator('#rows tr[data-channel="EXH_BP_R"] td').nth(3)
+            page.wait_for_function("""document.querySelector('#rows tr[data-channel="EXH_BP_R"]')
+                                      .cells[3].textContent === 'ok'""")
+            feed(1.0, frames=False)  # a silent bus: ticks go on, no frames
+            page.wait_for_function("""document.querySelector('#rows tr[data-channel="EXH_BP_R"]')
+                                      .cells[3].textContent === 'stale'""", timeout=5000)
+            assert row.get_attribute("class") == "stale"
+            assert httpx.get(url + "/channels/EXH_BP_R", timeout=5).json()["status"] == "stale"
+            kal = page.locator('#rows tr[data-channel="EXH_BP_R_Kalman"] td').nth(3)
+            assert kal.inner_text() == "stale"  # computed from a stale input
+        finally:
+            context.close()
+
+
 def _card(page, name):
     return page.locator(f'.block[data-block="{name}"]')
 

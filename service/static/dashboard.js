@@ -51,12 +51,14 @@ const unitOf = name => (TC.meta.get(name) || {}).unit || "";
 const exists = name => TC.meta.has(name);
 
 function truthOf(name, prefix) {
-  // the simulator's truth for an output: NAME_TRUE, or ..._<STATE>_TRUE for PREFIX_<STATE>
-  if (exists(name + "_TRUE")) return name + "_TRUE";
-  let rest = prefix && name.startsWith(prefix + "_") ? name.slice(prefix.length + 1) : name;
-  rest = rest.replace(/_HAT$/, "");
-  if (exists(rest + "_TRUE")) return rest + "_TRUE";
-  const hits = [...TC.meta.keys()].filter(n => n.endsWith("_" + rest + "_TRUE"));
+  // the simulator's truth for an estimate: NAME_TRUE; for PREFIX_<STATE>, <STATE>_TRUE or
+  // a unique ..._<STATE>_TRUE; an _EST or _HAT suffix names the estimate, not the quantity
+  const rest = prefix && name.startsWith(prefix + "_") ? name.slice(prefix.length + 1) : name;
+  for (const c of new Set([name, rest, name.replace(/_(EST|HAT)$/, ""), rest.replace(/_(EST|HAT)$/, "")])) {
+    if (exists(c + "_TRUE")) return c + "_TRUE";
+  }
+  const base = rest.replace(/_(EST|HAT)$/, "");
+  const hits = [...TC.meta.keys()].filter(n => n.endsWith("_" + base + "_TRUE"));
   return hits.length === 1 ? hits[0] : null;
 }
 

@@ -265,6 +265,9 @@ class BarPlot {
     const fin = vals.filter(Number.isFinite);
     let lo = Math.min(0, ...fin), hi = Math.max(0, ...fin);
     if (!(hi > lo)) { lo = 0; hi = 1; }
+    const pad = 0.12 * (hi - lo);  // room for the value labels over (or under) the bars
+    if (hi > 0) hi += pad;
+    if (lo < 0) lo -= pad;
     const left = 62, right = cssW - 10, top = 10, bottom = cssH - 30;
     const y = v => bottom - (bottom - top) * (v - lo) / (hi - lo);
     g.strokeStyle = "#8c959f"; g.beginPath(); g.moveTo(left, top); g.lineTo(left, bottom); g.stroke();

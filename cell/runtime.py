@@ -26,6 +26,10 @@ from .dbc import DECODE_ERROR_KINDS, CellDatabase, FrameDecodeError
 from .errors import ConfigError, UnknownBlockError
 
 _EPS = 1e-9
+#: distinct arbitration IDs counted one by one (``Runtime.frames_by_id``); frames of further
+#: IDs are counted together under :data:`OTHER_IDS`, so a bus of random IDs stays bounded
+MAX_COUNTED_IDS = 1024
+OTHER_IDS = (-1, False)
 
 
 @dataclass(frozen=True)
@@ -228,7 +232,11 @@ class Runtime:
                         self._run_ticks(ts, inclusive=False)
                     frame_times.append(ts)
                     key = (msg.arbitration_id, bool(msg.is_extended_id))
-                    by_id_count[key] = by_id_count.get(key, 0) + 1
+                    seen = by_id_count.get(key)
+                    if seen is None and len(by_id_count) >= MAX_COUNTED_IDS:
+                        by_id_count[OTHER_IDS] = by_id_count.get(OTHER_IDS, 0) + 1  # a bus of random IDs
+                    else:
+                        by_id_count[key] = (seen or 0) + 1
                     last = self.last_frame_time
                     if last is None or ts >= last:
                         self.last_frame_time = ts

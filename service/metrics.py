@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from cell.runtime import Runtime
+from cell.runtime import OTHER_IDS, Runtime
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 
@@ -78,6 +78,8 @@ def render(runtime: Runtime, rates: FrameRates, hub: Any) -> str:
         per_s = rates.rates()
 
         def id_labels(key: tuple[int, bool]) -> str:
+            if key == OTHER_IDS:
+                return _labels(id="other", message="unknown")
             msg = db._by_id.get(key)
             ident = f"0x{key[0]:08X}" if key[1] else f"0x{key[0]:03X}"
             return _labels(id=ident, message=msg.name if msg is not None else "unknown")

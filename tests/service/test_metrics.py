@@ -121,3 +121,17 @@ def test_websocket_clients_are_counted_while_connected(db):
     while parse(client.get("/metrics").text)["testcell_websocket_clients"] != 0:
         assert time.monotonic() < deadline
         time.sleep(0.05)
+
+
+def test_a_bus_of_random_ids_keeps_the_counts_bounded(db, monkeypatch):
+    import cell.runtime
+
+    monkeypatch.setattr(cell.runtime, "MAX_COUNTED_IDS", 8)
+    rt = Runtime(db)
+    for k in range(40):  # 40 distinct unknown IDs
+        rt.ingest(can.Message(timestamp=k * 0.01, arbitration_id=0x10000 + k, data=b"", is_extended_id=True))
+    assert len(rt.frames_by_id) == 9
+    m = parse(TestClient(create_app(Cell(runtime=rt, bus="virtual:test"))).get("/metrics").text)
+    assert m['testcell_frames_total{id="other",message="unknown"}'] == 32
+    assert m['testcell_frames_total{id="0x00010000",message="unknown"}'] == 1
+    assert m['testcell_decode_errors_total{kind="unknown_id"}'] == 40

@@ -34,10 +34,16 @@ RING = 100
 BACKLOG = 50
 #: most patterns one subscription may hold
 MAX_PATTERNS = 200
+#: most subscribers at once (WebSocket and SSE together); more are refused
+MAX_CLIENTS = 256
 
 
 class SubscriptionError(ValueError):
     """A subscription request that names nothing usable; the message says why."""
+
+
+class TooManyClients(RuntimeError):
+    """The hub already serves :data:`MAX_CLIENTS` subscribers."""
 
 
 def parse_patterns(spec: Any, where: str) -> tuple[str, ...]:
@@ -208,6 +214,9 @@ class StreamHub:
     def join(self, patterns: tuple[str, ...], backlog: int | None = None, kind: str = "ws") -> Client:
         """A new client (call from its event loop); it gets ticks from the next one on."""
         with self._lock:
+            if len(self.clients) >= MAX_CLIENTS:
+                raise TooManyClients(f"the cell already streams to {len(self.clients)} subscribers "
+                                     f"(at most {MAX_CLIENTS}); try again later")
             c = Client(self, patterns, backlog or self.backlog, kind)
             self.clients.add(c)
             self.connections_total += 1
@@ -246,4 +255,5 @@ class StreamHub:
             return self.dropped_total + sum(c.dropped for c in self.clients)
 
 
-__all__ = ["Client", "Record", "StreamHub", "SubscriptionError", "match", "parse_patterns"]
+__all__ = ["Client", "Record", "StreamHub", "SubscriptionError", "TooManyClients", "match",
+           "parse_patterns"]

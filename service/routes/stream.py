@@ -39,7 +39,8 @@ from typing import Annotated, Any
 from fastapi import APIRouter, HTTPException, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import StreamingResponse
 
-from ..stream import Client, StreamHub, SubscriptionError, match, parse_patterns
+from .. import stream as _stream
+from ..stream import Client, StreamHub, SubscriptionError, TooManyClients, match, parse_patterns
 
 router = APIRouter(tags=["stream"])
 
@@ -70,7 +71,12 @@ def _snapshot(hub: StreamHub, client: Client) -> dict[str, Any]:
 async def stream(ws: WebSocket) -> None:
     hub = _hub(ws.app)
     await ws.accept()
-    client = hub.join(())
+    try:
+        client = hub.join(())
+    except TooManyClients as exc:
+        await ws.send_json({"type": "error", "message": str(exc)})
+        await ws.close(1013, "too many subscribers")
+        return
     try:
         query = ws.query_params.get("channels")
         await ws.send_json({"type": "hello", "time": hub.runtime.now, "backlog": client.backlog})
@@ -164,6 +170,9 @@ async def stream_sse(
     except SubscriptionError as exc:
         raise HTTPException(422, detail=[{"loc": ["query", "channels"], "type": "value_error",
                                           "msg": str(exc)}]) from None
+    if len(hub.clients) >= _stream.MAX_CLIENTS:
+        raise HTTPException(503, detail=f"the cell already streams to {len(hub.clients)} subscribers "
+                                        f"(at most {_stream.MAX_CLIENTS}); try again later")
     return StreamingResponse(_sse(request, hub, patterns, count), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
@@ -171,7 +180,11 @@ async def stream_sse(
 async def _sse(request: Request, hub: StreamHub, patterns: tuple[str, ...],
                count: int | None) -> AsyncIterator[str]:
     # joined here, not in the route: a client gone before the first byte never joins
-    client = hub.join(patterns, kind="sse")
+    try:
+        client = hub.join(patterns, kind="sse")
+    except TooManyClients as exc:  # filled up since the route looked
+        yield f"event: error\ndata: {json.dumps({'type': 'error', 'message': str(exc)})}\n\n"
+        return
     try:
         yield f"event: subscribed\ndata: {json.dumps(_subscribed(hub, client))}\n\n"
         yield f"event: snapshot\ndata: {json.dumps(_snapshot(hub, client))}\n\n"

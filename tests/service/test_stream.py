@@ -124,6 +124,23 @@ def test_bad_requests_get_an_error_and_the_subscription_stays(url, cell, db, raw
         assert set(recv(ws, "data")["values"]) == {"EXH_BP_R"}
 
 
+def test_subscribers_beyond_the_limit_are_refused_and_told_why(url, monkeypatch):
+    import service.stream
+
+    monkeypatch.setattr(service.stream, "MAX_CLIENTS", 1)
+    with connect(ws_url(url, "?channels=EXH_BP_R")) as first:
+        recv(first, "subscribed")
+        with connect(ws_url(url)) as second:
+            err = recv(second, "error")
+            assert "at most 1" in err["message"]
+            with pytest.raises(ConnectionClosed) as closed:
+                second.recv(timeout=5)
+            assert closed.value.rcvd.code == 1013
+        r = httpx.get(url + "/stream/sse", params={"channels": "EXH_BP_R"}, timeout=5)
+        assert r.status_code == 503 and "at most 1" in r.text
+        recv(first, "snapshot")  # the first one is served on
+
+
 def test_sse_serves_the_same_data_to_curl(url, cell, db):
     stop = threading.Event()
 

@@ -118,6 +118,7 @@ class Runtime:
         self.frames_by_id: dict[tuple[int, bool], int] = {}
         #: ticks whose work (block steps and MED listeners) took longer than their period
         self.tick_overruns = 0
+        #: ticks that had work (every MED tick; FAS and SLO ticks when a block runs at them)
         self.ticks = 0
         #: wall seconds of the slowest tick so far
         self.tick_seconds_max = 0.0
@@ -307,24 +308,29 @@ class Runtime:
             ticking = frozenset(r for (tt, r) in due if abs(tt - t) <= _EPS)
             for r in ticking:
                 self._next_index[r] += 1
-            started = time.perf_counter()
-            if "MED" in ticking or any(not ticking.isdisjoint(b.rates) for b in self.blocks.values()):
+            work = "MED" in ticking or any(not ticking.isdisjoint(b.rates) for b in self.blocks.values())
+            if work:
+                started = time.perf_counter()
                 self._flush()  # a FAS tick with no FAS block reads nothing: skip the decode
                 self._tick(ticking, t)
             self.last_tick_time = t
             if "MED" in ticking:
                 self._after_med_tick(t)
-            self._count_tick(time.perf_counter() - started, ticking)
+            if work:
+                self._count_tick(time.perf_counter() - started, ticking)
         self._next_due = min(self._next_index[r] / getattr(self.rates, r) for r in RATE_NAMES)
 
     def _count_tick(self, seconds: float, ticking: frozenset[str]) -> None:
-        """Count a tick, and an overrun when its work took longer than the period of the
-        fastest task that ticked with work to do (a FAS tick with no FAS block does none)."""
+        """Count a tick that had work, and an overrun when the work took longer than the
+        period of the fastest task with work in it (a FAS tick with no FAS block has none)."""
         self.ticks += 1
         if seconds > self.tick_seconds_max:
             self.tick_seconds_max = seconds
+        rates = self.rates
+        if seconds * max(rates.FAS, rates.MED, rates.SLO) <= 1.0:
+            return  # shorter than every period (the common case): no overrun, nothing to scan
         working = [r for r in ticking if r == "MED" or any(r in b.rates for b in self.blocks.values())]
-        if working and seconds > min(self.rates.period(r) for r in working):
+        if working and seconds > min(rates.period(r) for r in working):
             self.tick_overruns += 1
 
     def _tick(self, ticking: frozenset[str], t: float) -> None:

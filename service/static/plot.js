@@ -60,6 +60,21 @@ function niceStep(span, target) {
   return 10 * p;
 }
 
+function stepDecimals(step) {
+  // the decimals that write every multiple of a tick step exactly (0.05 -> 2, 2.5 -> 1)
+  for (let d = 0; d < 9; d++) {
+    const x = step * Math.pow(10, d);
+    if (Math.abs(x - Math.round(x)) < 1e-6 * Math.max(1, x)) return d;
+  }
+  return 9;
+}
+
+function fmtTick(v, step) {
+  const a = Math.abs(v);
+  if (a !== 0 && (a >= 1e6 || a < 1e-4 || step < 1e-6)) return v.toExponential(2);
+  return v.toFixed(stepDecimals(step));
+}
+
 function fmtNum(v) {
   const a = Math.abs(v);
   if (a === 0) return "0";
@@ -173,12 +188,11 @@ class TimePlot {
     const step = niceStep(t1 - t0, Math.max(2, (right - left) / 90));
     // bus time may be seconds since the epoch: label ticks from a round offset, named on the axis
     const offset = Math.abs(t0) >= 1e5 ? Math.floor(t0 / 1000) * 1000 : 0;
-    const decimals = Math.max(0, -Math.floor(Math.log10(step) + 1e-9));
     g.fillStyle = "#57606a"; g.textAlign = "center"; g.textBaseline = "top";
     for (let t = Math.ceil(t0 / step) * step; t <= t1 + 1e-9; t += step) {
       const x = left + (t - t0) * pxs;
       g.strokeStyle = "#eaeef2"; g.beginPath(); g.moveTo(x, top); g.lineTo(x, bottom); g.stroke();
-      g.fillText((t - offset).toFixed(decimals), x, bottom + 3);
+      g.fillText(fmtTick(t - offset, step), x, bottom + 3);
     }
     g.fillText(offset ? `bus time (s) − ${offset}` : "bus time (s)", (left + right) / 2, bottom + 18);
     // one y axis per unit
@@ -190,7 +204,7 @@ class TimePlot {
       for (let v = Math.ceil(sc.lo / ys) * ys; v <= sc.hi; v += ys) {
         const y = sc.y(v);
         g.beginPath(); g.moveTo(x, y); g.lineTo(x + (sc.side === "L" ? -3 : 3), y); g.stroke();
-        g.fillText(fmtNum(v), x + (sc.side === "L" ? -5 : 5), y);
+        g.fillText(fmtTick(v, ys), x + (sc.side === "L" ? -5 : 5), y);
         if (sc.slot === 0 && sc.side === "L") { g.strokeStyle = "#f0f3f6"; g.beginPath(); g.moveTo(left, y); g.lineTo(right, y); g.stroke(); g.strokeStyle = "#8c959f"; }
       }
       g.save(); g.translate(sc.side === "L" ? x - AX + 10 : x + AX - 10, (top + bottom) / 2);
@@ -273,7 +287,7 @@ class BarPlot {
     g.strokeStyle = "#8c959f"; g.beginPath(); g.moveTo(left, top); g.lineTo(left, bottom); g.stroke();
     g.fillStyle = "#57606a"; g.textAlign = "right"; g.textBaseline = "middle";
     const ys = niceStep(hi - lo, 5);
-    for (let v = Math.ceil(lo / ys) * ys; v <= hi; v += ys) g.fillText(fmtNum(v), left - 5, y(v));
+    for (let v = Math.ceil(lo / ys) * ys; v <= hi; v += ys) g.fillText(fmtTick(v, ys), left - 5, y(v));
     g.save(); g.translate(14, (top + bottom) / 2); g.rotate(-Math.PI / 2); g.textAlign = "center";
     g.fillText(this.unit || "(no unit)", 0, 0); g.restore();
     g.strokeStyle = "#d0d7de"; g.beginPath(); g.moveTo(left, y(0)); g.lineTo(right, y(0)); g.stroke();

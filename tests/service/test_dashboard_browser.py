@@ -161,6 +161,10 @@ def test_window_pause_and_zoom(diesel):
     page.dblclick('[data-panel="filters-EXH_BP_R"] canvas')
     assert page.evaluate("TC.view.zoom") is None
     page.select_option("#window", "60")
+    # tick labels keep the digits their step needs (a 0.05 % step is not labelled 40.0, 40.0)
+    labels = page.evaluate("[fmtTick(40.05, 0.05), fmtTick(40.1, 0.05), fmtTick(7.5, 2.5), fmtTick(835, 5), "
+                           "fmtTick(0.00002, 0.00001)]")
+    assert labels == ["40.05", "40.10", "7.5", "835", "2.00e-5"]
 
 
 def test_a_channel_whose_frames_stop_shows_stale_in_the_table(chromium, db):

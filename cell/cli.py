@@ -91,9 +91,8 @@ def _exit_on_sigterm(signum: int, frame: object) -> None:
 
 
 def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
-    import uvicorn
-
     from service.main import create_app
+    from service.serve import serve
 
     from .bus import open_bus, resolve
     from .context import Cell
@@ -139,8 +138,8 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
                     extra={"scripts": scripts, "settings": settings})
         log.info("testcell %s on %s; API on http://%s:%d (tuning file %s)",
                  __version__, spec, settings.host, settings.port, store.path)
-        uvicorn.run(create_app(cell), host=settings.host, port=settings.port,
-                    log_level=settings.log_level.lower())
+        serve(create_app(cell), host=settings.host, port=settings.port,
+              log_level=settings.log_level.lower())
         live.stop()
     finally:
         sim_stop.set()

@@ -7,6 +7,7 @@ frames in flight), so ticks keep coming and inputs can go stale.
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 import time
@@ -42,6 +43,11 @@ class LiveCell:
         self._anchor: tuple[float, float] | None = None  # (bus time, monotonic) of newest frame
 
     def start(self) -> LiveCell:
+        # A full garbage collection pauses every thread for as long as it takes to scan the
+        # heap (100-400 ms for a large one), long enough to overrun ticks. What exists at
+        # start (modules, the DBC, the blocks) lives as long as the cell: freeze it, so
+        # collections scan only what the running cell allocates.
+        gc.freeze()
         self._thread = threading.Thread(target=self._loop, name="testcell-runtime", daemon=True)
         self._thread.start()
         return self

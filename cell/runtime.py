@@ -12,12 +12,14 @@ from __future__ import annotations
 import collections
 import math
 import threading
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import can
 
+from . import units
 from .blocks import RATE_NAMES, Block
 from .channels import INVALID, OK, STALE, Channel, History
 from .dbc import DECODE_ERROR_KINDS, CellDatabase, FrameDecodeError
@@ -25,6 +27,10 @@ from .errors import ConfigError, UnknownBlockError
 from .streams import StreamLayout, StreamTracker, find_streams
 
 _EPS = 1e-9
+#: distinct arbitration IDs counted one by one (``Runtime.frames_by_id``); frames of further
+#: IDs are counted together under :data:`OTHER_IDS`, so a bus of random IDs stays bounded
+MAX_COUNTED_IDS = 1024
+OTHER_IDS = (-1, False)
 
 
 @dataclass(frozen=True)
@@ -128,6 +134,17 @@ class Runtime:
         self.last_frame_time: float | None = None
         self.last_tick_time: float | None = None
         self._frame_times: collections.deque[float] = collections.deque(maxlen=20_000)
+        # -- metrics (GET /metrics): counted here, formatted by service.metrics ------------
+        #: frames received per (arbitration ID, extended), known or not
+        self.frames_by_id: dict[tuple[int, bool], int] = {}
+        #: ticks whose work (block steps and MED listeners) took longer than their period
+        self.tick_overruns = 0
+        #: ticks that had work (every MED tick; FAS and SLO ticks when a block runs at them)
+        self.ticks = 0
+        #: wall seconds of the slowest tick so far
+        self.tick_seconds_max = 0.0
+        #: per block: [wall seconds spent in step, steps]
+        self.step_time: dict[str, list[float]] = {}
         self._next_index: dict[str, int] | None = None
         self._next_due: float | None = None
         # an input goes stale by the third MED tick after its frames stop
@@ -163,11 +180,7 @@ class Runtime:
                 self._stream_route(layout).blocks.append(block)
             for out in block.outputs:
                 self.producer[out] = block.name
-                unit = self.db.signals[out].unit if out in self.db.signals else ""
-                unit = unit or block.units.get(out, "")
-                if not unit and block.keeps_input_unit and len(block.inputs) == 1:
-                    src = self.db.signals.get(block.inputs[0]) or self._channels.get(block.inputs[0])
-                    unit = src.unit if src else ""  # a filter keeps its input's unit
+                unit = units.resolve(self, block, out)  # DBC, declared, else its one input's
                 ch = self._channel(out, source=block.name)
                 ch.unit = ch.unit or unit
 
@@ -279,6 +292,7 @@ class Runtime:
         pending = self._pending
         streams = self._streams
         frame_times = self._frame_times
+        by_id_count = self.frames_by_id
         with self.lock:
             try:
                 for msg in msgs:
@@ -288,12 +302,17 @@ class Runtime:
                     if nxt is None or ts > nxt + _EPS:
                         self._run_ticks(ts, inclusive=False)
                     frame_times.append(ts)
+                    key = (msg.arbitration_id, bool(msg.is_extended_id))
+                    seen = by_id_count.get(key)
+                    if seen is None and len(by_id_count) >= MAX_COUNTED_IDS:
+                        by_id_count[OTHER_IDS] = by_id_count.get(OTHER_IDS, 0) + 1  # a bus of random IDs
+                    else:
+                        by_id_count[key] = (seen or 0) + 1
                     last = self.last_frame_time
                     if last is None or ts >= last:
                         self.last_frame_time = ts
                     else:
                         self.late_frames += 1
-                    key = (msg.arbitration_id, bool(msg.is_extended_id))
                     message = by_id.get(key)
                     if message is None or len(msg.data) != message.length:
                         try:
@@ -363,13 +382,30 @@ class Runtime:
             ticking = frozenset(r for (tt, r) in due if abs(tt - t) <= _EPS)
             for r in ticking:
                 self._next_index[r] += 1
-            if "MED" in ticking or any(not ticking.isdisjoint(b.rates) for b in self.blocks.values()):
+            work = "MED" in ticking or any(not ticking.isdisjoint(b.rates) for b in self.blocks.values())
+            if work:
+                started = time.perf_counter()
                 self._flush()  # a FAS tick with no FAS block reads nothing: skip the decode
                 self._tick(ticking, t)
             self.last_tick_time = t
             if "MED" in ticking:
                 self._after_med_tick(t)
+            if work:
+                self._count_tick(time.perf_counter() - started, ticking)
         self._next_due = min(self._next_index[r] / getattr(self.rates, r) for r in RATE_NAMES)
+
+    def _count_tick(self, seconds: float, ticking: frozenset[str]) -> None:
+        """Count a tick that had work, and an overrun when the work took longer than the
+        period of the fastest task with work in it (a FAS tick with no FAS block has none)."""
+        self.ticks += 1
+        if seconds > self.tick_seconds_max:
+            self.tick_seconds_max = seconds
+        rates = self.rates
+        if seconds * max(rates.FAS, rates.MED, rates.SLO) <= 1.0:
+            return  # shorter than every period (the common case): no overrun, nothing to scan
+        working = [r for r in ticking if r == "MED" or any(r in b.rates for b in self.blocks.values())]
+        if working and seconds > min(rates.period(r) for r in working):
+            self.tick_overruns += 1
 
     def _tick(self, ticking: frozenset[str], t: float) -> None:
         updated: set[str] = set()
@@ -392,6 +428,7 @@ class Runtime:
                 for out in block.outputs:
                     self._channels[out].mark(*bad)
                 continue
+            started = time.perf_counter()
             try:
                 outputs = block.step(t, values, ticking)
             except ArithmeticError as exc:
@@ -399,6 +436,12 @@ class Runtime:
                 for out in block.outputs:
                     self._channels[out].mark(INVALID, f"{type(exc).__name__}: {exc}")
                 continue
+            finally:
+                spent = self.step_time.get(block.name)
+                if spent is None:
+                    spent = self.step_time[block.name] = [0.0, 0]
+                spent[0] += time.perf_counter() - started
+                spent[1] += 1
             reasons = block.errors
             for out, value in outputs.items():
                 ch = self._channels[out]

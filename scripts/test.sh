@@ -4,6 +4,11 @@
 set -uo pipefail
 source "$(dirname "$0")/_bootstrap.sh"
 bootstrap "[test]" || exit 1
+# The dashboard tests drive Debian's chromium; install it where we may (root with apt-get).
+# Where it cannot be installed those tests skip and say why.
+if [ ! -x /usr/bin/chromium ]; then
+    bash scripts/setup-browser.sh --if-root || echo "test.sh: no chromium; the browser tests will skip" >&2
+fi
 .venv/bin/python -m pytest "$@"
 rc=$?
 if [ "$rc" = 5 ]; then

@@ -8,7 +8,9 @@ from cell import __version__, registry
 from cell.context import Cell
 
 from . import errors
-from .routes import channels, filters, health, page, scenario, scripts
+from .metrics import FrameRates
+from .routes import channels, filters, health, metrics, page, scenario, scripts, simulator, stream
+from .stream import StreamHub
 from .routes.blocks import block_router
 
 #: Routes a block family has beyond GET/PATCH, by family name.
@@ -24,6 +26,8 @@ def create_app(cell: Cell) -> FastAPI:
     )
     registry.load_plugins()
     app.state.cell = cell
+    app.state.hub = StreamHub(cell.runtime)
+    app.state.frame_rates = FrameRates(cell.runtime)
     errors.install(app)
     app.include_router(health.router)
     app.include_router(channels.router)
@@ -35,5 +39,8 @@ def create_app(cell: Cell) -> FastAPI:
             app.include_router(router)
     app.include_router(scripts.router)
     app.include_router(scenario.router)
+    app.include_router(stream.router)
+    app.include_router(metrics.router)
+    app.include_router(simulator.router)
     app.include_router(page.router)
     return app

@@ -30,6 +30,9 @@ def test_up_on_a_virtual_bus_serves_filtered_values_and_stops_cleanly(tmp_path):
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=2) as r:
             health = json.loads(r.read())
         assert health["bus"] == "virtual:testcell" and health["frames"] > 0
+        # an open event stream (curl -N .../stream/sse) must not keep the cell from stopping
+        sse = urllib.request.urlopen(f"http://127.0.0.1:{port}/stream/sse?channels=EXH_BP_R", timeout=10)
+        assert sse.readline().startswith(b"event: subscribed")
     finally:
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=20)

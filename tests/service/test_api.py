@@ -181,7 +181,10 @@ def test_saved_tuning_with_bad_values_is_skipped_not_applied(db, tmp_path):
 def test_page_and_openapi(client):
     r = client.get("/")
     assert r.status_code == 200 and "text/html" in r.headers["content-type"]
-    assert "/channels" in r.text
+    assert '<script src="/static/dashboard.js">' in r.text
+    js = client.get("/static/dashboard.js")
+    assert js.status_code == 200 and "javascript" in js.headers["content-type"] and "/channels" in js.text
+    assert client.get("/static/nope.js").status_code == 404
     paths = client.get("/openapi.json").json()["paths"]
     for p in ("/health", "/channels", "/channels/{name}", "/channels/{name}/history", "/filters",
               "/filters/{name}"):

@@ -115,6 +115,7 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
         build_sim(settings, runtime.db)  # refuse a bad engine or frame set before starting
     store.restore(runtime)
     bus = open_bus(spec)
+    live = None
     sim_proc = None
     sim_thread = None
     sim_bus = None
@@ -141,8 +142,9 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
                  __version__, spec, settings.host, settings.port, store.path)
         uvicorn.run(create_app(cell), host=settings.host, port=settings.port,
                     log_level=settings.log_level.lower())
-        live.stop()
     finally:
+        if live is not None:
+            live.stop()  # before the bus closes, or its receive fails on a closed socket
         sim_stop.set()
         _stop_process(sim_proc)
         if sim_thread is not None:

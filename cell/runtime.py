@@ -25,6 +25,13 @@ from .errors import ConfigError, UnknownBlockError
 
 _EPS = 1e-9
 
+#: Kinds of bad frame counted in ``/health``: the decoder's, plus remote and error frames
+#: (which carry no signal values).
+FRAME_ERROR_KINDS = (*DECODE_ERROR_KINDS, "remote_frame", "error_frame")
+
+#: How many distinct unknown frame IDs are remembered (a fuzzed bus has millions).
+MAX_UNKNOWN_IDS = 256
+
 
 @dataclass(frozen=True)
 class Rates:
@@ -101,9 +108,15 @@ class Runtime:
         self.frames = 0
         self.late_frames = 0
         self.decode_errors: collections.Counter[str] = collections.Counter(
-            {k: 0 for k in DECODE_ERROR_KINDS}
+            {k: 0 for k in FRAME_ERROR_KINDS}
         )
+        #: frames whose ID no DBC file defines, by ID (at most MAX_UNKNOWN_IDS distinct IDs)
+        self.unknown_ids: collections.Counter[tuple[int, bool]] = collections.Counter()
         self.block_errors: collections.Counter[str] = collections.Counter()
+        #: outputs withheld from the bus because a block produced NaN or inf, by channel
+        self.withheld: collections.Counter[str] = collections.Counter()
+        #: small state kept for the service between requests (trip onset, reset counter)
+        self.extra_state: dict[str, Any] = {}
         self.last_frame_time: float | None = None
         self.last_tick_time: float | None = None
         self._frame_times: collections.deque[float] = collections.deque(maxlen=20_000)
@@ -144,13 +157,16 @@ class Runtime:
                 ch.unit = ch.unit or unit
 
     def remove_block(self, name: str) -> Block:
+        """Remove a block, its output channels and its error counts (they ended with it)."""
         with self.lock:
             block = self.block(name)
             del self.blocks[name]
+            self.block_errors.pop(name, None)
             for out in block.outputs:
                 self.producer.pop(out, None)
                 self._channels.pop(out, None)
                 self._history.drop(out)
+                self.withheld.pop(out, None)
             return block
 
     def block(self, name: str, family: str | None = None) -> Block:
@@ -223,6 +239,10 @@ class Runtime:
                         self.last_frame_time = ts
                     else:
                         self.late_frames += 1
+                    if msg.is_error_frame or msg.is_remote_frame:
+                        self.decode_errors["error_frame" if msg.is_error_frame
+                                           else "remote_frame"] += 1
+                        continue
                     key = (msg.arbitration_id, bool(msg.is_extended_id))
                     message = by_id.get(key)
                     if message is None or len(msg.data) != message.length:
@@ -230,6 +250,9 @@ class Runtime:
                             self.db.check(msg)  # the one place that words the error
                         except FrameDecodeError as exc:
                             self.decode_errors[exc.kind] += 1
+                            if exc.kind == "unknown_id" and (
+                                    key in self.unknown_ids or len(self.unknown_ids) < MAX_UNKNOWN_IDS):
+                                self.unknown_ids[key] += 1
                         continue
                     prev = pending.get(key)
                     if prev is None or ts >= prev[1]:
@@ -331,6 +354,8 @@ class Runtime:
                 ch.update(float(value), t)
                 if ch.status != OK:
                     self.block_errors[block.name] += 1
+                    if not math.isfinite(ch.value):
+                        self.withheld[out] += 1  # _emit keeps it off the bus
                     if out in reasons:
                         ch.mark(INVALID, reasons[out])
                 updated.add(out)
@@ -382,6 +407,13 @@ class Runtime:
             self.channel(name)  # 404 for an unknown channel
             return self._history.series(name, seconds)
 
+    def unknown_id_counts(self, top: int = 32) -> dict[str, int]:
+        """The most frequent frame IDs that no DBC defines, as ``"0x123"`` (``x`` suffix:
+        extended) -> frames."""
+        with self.lock:
+            return {f"0x{i:X}{'x' if ext else ''}": n
+                    for (i, ext), n in self.unknown_ids.most_common(top)}
+
     def health(self) -> dict[str, Any]:
         with self.lock:
             return {
@@ -389,10 +421,12 @@ class Runtime:
                 "frames_per_s": self.frames_per_second(),
                 "decode_errors": dict(self.decode_errors),
                 "late_frames": self.late_frames,
+                "unknown_ids": self.unknown_id_counts(),
                 "block_errors": dict(self.block_errors),
+                "withheld": dict(self.withheld),
                 "last_frame_time": self.last_frame_time,
                 "bus_time": self.now,
             }
 
 
-__all__ = ["Rates", "Runtime"]
+__all__ = ["FRAME_ERROR_KINDS", "Rates", "Runtime"]

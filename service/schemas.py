@@ -30,14 +30,24 @@ class HistoryOut(BaseModel):
     points: list[HistoryPoint]
 
 
+class TripOut(BaseModel):
+    state: str
+    reason: str
+    since: float | None
+
+
 class HealthOut(BaseModel):
-    status: Literal["ok", "waiting"]
+    status: Literal["ok", "waiting", "degraded"]
+    reasons: list[str]
+    trip: TripOut | None
     bus: str
     frames: int
     frames_per_s: float
     decode_errors: dict[str, int]
+    unknown_ids: dict[str, int]
     late_frames: int
     block_errors: dict[str, int]
+    withheld: dict[str, int]
     last_frame_time: float | None
     bus_time: float | None
     runtime_running: bool

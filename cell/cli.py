@@ -166,10 +166,11 @@ def cmd_replay(settings: Settings, args: argparse.Namespace) -> int:
     channels = [c.strip() for c in args.channels.split(",") if c.strip()] if args.channels else None
     result = replay(runtime, args.log, args.out, channels=channels,
                     progress=False if args.quiet else None)
-    print(f"{args.log}: {result.frames} frames, {len(result.rows)} ticks -> {args.out}",
+    print(f"{args.log}: {result.summary()}; {len(result.rows)} ticks -> {args.out}",
           file=sys.stderr)
     if args.plot:
-        wanted = channels or [c for c in PLOT_DEFAULT if c in result.columns]
+        # the back-pressure channels when the log has them, else what the replay computed
+        wanted = channels or [c for c in PLOT_DEFAULT if c in result.columns] or result.columns[1:9]
         plot_channels(args.plot, result.columns, result.rows, wanted, title=str(args.log))
         print(f"plot -> {args.plot}", file=sys.stderr)
     if result.error is not None:

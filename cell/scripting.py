@@ -222,6 +222,15 @@ class ScriptManager:
         if src.ravg is not None and suffix_of(name) == ".labels":
             write_text_atomic((self.folder / name).with_suffix(".ravg"), src.ravg)
 
+    def unknown_inputs(self, name: str) -> list[str]:
+        """Inputs of a script that no channel of the cell provides: no DBC signal, no block
+        output, no channel seen. Its outputs would stay stale, so callers warn by name."""
+        rt = self.runtime
+        with rt.lock:
+            block = self.block(name)
+            known = set(rt.db.signals) | set(rt.producer) | set(rt.channels)
+            return [i for i in block.inputs if i not in known]
+
     def describe(self, name: str) -> dict[str, Any]:
         with self.runtime.lock:
             block = self.block(name)

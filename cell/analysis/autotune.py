@@ -455,5 +455,5 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-__all__ = ["APPLY_MIN_SAMPLES", "METHODS", "apply_refusals", "TuneResult", "add_arguments", "autotune", "em_reference", "loglik",
-           "main", "profile_loglik"]
+__all__ = ["APPLY_MIN_SAMPLES", "METHODS", "TuneResult", "add_arguments", "apply_refusals",
+           "autotune", "em_reference", "loglik", "main", "profile_loglik"]

@@ -102,8 +102,11 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
 
     from .sim import build as build_sim
 
+    from service.security import check_bind
+
     settings = settings.for_simulator()
     spec = resolve(settings.bus)
+    check_bind(settings.host, settings.token)
     _check_port_free(settings.host, settings.port)
     # uvicorn re-raises SIGTERM after its own graceful shutdown; turn it into SystemExit so
     # the finally below still stops the simulator and closes the bus

@@ -8,6 +8,7 @@ from cell import __version__, registry
 from cell.context import Cell
 
 from . import errors
+from .security import Security, SecurityMiddleware
 from .routes import channels, engine, filters, health, page, scripts
 from .routes.blocks import block_router
 
@@ -15,8 +16,12 @@ from .routes.blocks import block_router
 FAMILY_ROUTES: dict[str, Callable[[APIRouter], None]] = {"filter": filters.add_routes}
 
 
-def create_app(cell: Cell) -> FastAPI:
-    """The app of ``cell``: one router per block family the cell has, plus the fixed ones."""
+def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
+    """The app of ``cell``: one router per block family the cell has, plus the fixed ones.
+
+    ``security`` (default: from the cell's settings, else open with the default limits)
+    decides who may change the cell and how large a request may be (:mod:`service.security`).
+    """
     app = FastAPI(
         title="testcell",
         version=__version__,
@@ -24,6 +29,10 @@ def create_app(cell: Cell) -> FastAPI:
     )
     registry.load_plugins()
     app.state.cell = cell
+    settings = cell.extra.get("settings")
+    security = security or (Security.from_settings(settings) if settings else Security())
+    app.state.security = security
+    app.add_middleware(SecurityMiddleware, security=security)
     errors.install(app)
     app.include_router(health.router)
     app.include_router(channels.router)

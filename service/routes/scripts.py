@@ -53,6 +53,10 @@ async def put_script(name: str, request: Request, cell: CellDep) -> JSONResponse
                                           "msg": "a script name is letters, digits, _ . - and "
                                                  "ends in .fdv, .labels or .ravg"}])
     raw = await request.body()
+    limit = request.app.state.security.max_script_bytes
+    if len(raw) > limit:
+        raise HTTPException(413, detail=f"{name} is {len(raw)} bytes; the limit for a script is "
+                                        f"{limit} bytes (TESTCELL_MAX_SCRIPT)")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:

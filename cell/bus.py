@@ -202,10 +202,25 @@ class CellBus:
         self.shutdown()
 
 
+#: Receive buffer asked for on udp_multicast (the kernel caps it at net.core.rmem_max unless
+#: the process may force it): at 50 000 frames/s the default ~200 kB holds a few ms.
+RECEIVE_BUFFER = 8 * 1024 * 1024
+
+
 def _only_own_group(bus: can.BusABC) -> None:
-    """Turn off IP_MULTICAST_ALL on a udp_multicast bus's socket (see the module notes)."""
+    """Turn off IP_MULTICAST_ALL on a udp_multicast bus's socket (see the module notes) and
+    enlarge its receive buffer, so that a burst is not dropped by the kernel."""
     sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
-    if sock is None or sock.family != socket.AF_INET:
+    if sock is None:
+        return
+    force = getattr(socket, "SO_RCVBUFFORCE", None)
+    for opt in ((force,) if force is not None else ()) + (socket.SO_RCVBUF,):
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, opt, RECEIVE_BUFFER)
+            break
+        except OSError:
+            continue
+    if sock.family != socket.AF_INET:
         return
     try:
         sock.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)

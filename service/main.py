@@ -8,6 +8,7 @@ from cell import __version__, registry
 from cell.context import Cell
 
 from . import errors
+from .schemas import ERROR_RESPONSES
 from .security import Security, SecurityMiddleware
 from .routes import channels, engine, filters, health, page, scripts
 from .routes.blocks import block_router
@@ -26,6 +27,7 @@ def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
         title="testcell",
         version=__version__,
         description="Live values and tuning of an emulated engine test cell that speaks CAN.",
+        responses=ERROR_RESPONSES,
     )
     registry.load_plugins()
     app.state.cell = cell

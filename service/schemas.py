@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict
 
 
 class ChannelOut(BaseModel):
@@ -63,3 +63,20 @@ class BlockOut(BaseModel):
     outputs: list[str]
     params: dict[str, Any]
     state: dict[str, Any]
+
+
+class ErrorOut(BaseModel):
+    """An error: ``detail`` says what was wrong and where (other fields by route)."""
+
+    model_config = ConfigDict(extra="allow")
+    detail: Any
+
+
+#: Error answers any route may give, documented once for the whole API.
+ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorOut, "description": "Bad input (e.g. a script that does not compile)"},
+    401: {"model": ErrorOut, "description": "The cell's token is needed (TESTCELL_TOKEN)"},
+    404: {"model": ErrorOut, "description": "No such channel, block or script"},
+    409: {"model": ErrorOut, "description": "Refused: conflicts with the cell's state"},
+    413: {"model": ErrorOut, "description": "Request body or script over its limit"},
+}

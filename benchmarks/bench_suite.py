@@ -76,7 +76,7 @@ def machine() -> dict[str, str]:
     return {"host": socket.gethostname(), "cpu": cpu, "cores": str(os.cpu_count()), "memory": mem,
             "os": platform.platform(), "python": platform.python_version(),
             "numpy": numpy.__version__, "load at start (1 min)": f"{load:.2f}",
-            "date": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+            "date": dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC")}
 
 
 # -- end to end: flood over udp_multicast ---------------------------------------------------------

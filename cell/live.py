@@ -57,6 +57,9 @@ class LiveCell:
         Delays between attempts to reopen a bus that went away.
     """
 
+    #: Most frames taken from the socket before they are handed to the runtime together.
+    BATCH = 256
+
     def __init__(self, runtime: Runtime, bus: CellBus, grace_s: float = 0.05,
                  silent_s: float = 1.0, backoff: Backoff | None = None) -> None:
         self.runtime = runtime
@@ -104,21 +107,33 @@ class LiveCell:
                     self._tick_silent()
                     self._stop.wait(0.01)
                     continue
+            batch: list = []
+            failure: BaseException | None = None
             try:
                 msg = self.bus.recv(timeout=0.01)
+                if msg is not None:
+                    batch.append(msg)
+                    while len(batch) < self.BATCH:  # what is already queued, in one go
+                        msg = self.bus.recv(timeout=0.0)
+                        if msg is None:
+                            break
+                        batch.append(msg)
             except Exception as exc:  # a broken bus must not kill the cell
-                if self._stop.is_set():
-                    break  # closed under us while stopping: not an error
-                self._lost(exc)
-                continue
-            if msg is not None:
+                failure = exc
+            if batch:
                 if self.silent:
                     self.silent = False
                     log.info("frames again on %s", self.bus.spec)
-                self.runtime.ingest(msg)
-                if self._anchor is None or msg.timestamp >= self._anchor[0]:
-                    self._anchor = (msg.timestamp, time.monotonic())
-            else:
+                self.runtime.ingest_many(batch)
+                newest = max(m.timestamp for m in batch)
+                if self._anchor is None or newest >= self._anchor[0]:
+                    self._anchor = (newest, time.monotonic())
+            if failure is not None:
+                if self._stop.is_set():
+                    break  # closed under us while stopping: not an error
+                self._lost(failure)
+                continue
+            if not batch:
                 # the socket is drained: only now may ticks run ahead of the frames, or a
                 # backlog of received but unread frames would miss their ticks
                 self._tick_silent()

@@ -60,7 +60,7 @@ def test_bus_going_away_is_reopened_with_backoff_and_logged_once_per_change(db, 
     channel = f"live-{time.monotonic_ns()}"
     rt = Runtime(db, native_filters())
     bus = open_bus(f"virtual:{channel}")
-    live = LiveCell(rt, bus, silent_s=0.3, backoff=Backoff(first=0.05, cap=0.2))
+    live = LiveCell(rt, bus, silent_s=0.3, backoff=Backoff(first=0.1, cap=0.4))
     tx = can.Bus(interface="virtual", channel=channel)
     t0 = time.time()
 
@@ -103,5 +103,8 @@ def test_bus_going_away_is_reopened_with_backoff_and_logged_once_per_change(db, 
     msgs = [r.getMessage() for r in caplog.records]
     assert sum("reconnecting" in m for m in msgs) == 1, msgs
     assert sum("is back after 3 attempt" in m for m in msgs) == 1, msgs
-    assert sum("inputs turn stale" in m for m in msgs) == 1, msgs
-    assert sum("frames again" in m for m in msgs) == 1, msgs
+    # each silence is logged once when it starts and once when frames return (a loaded
+    # machine may pause the sender too, which is a silence of its own)
+    silences = sum("inputs turn stale" in m for m in msgs)
+    assert silences >= 1 and sum("frames again" in m for m in msgs) == silences, msgs
+    assert len(msgs) == 2 + 2 * silences, msgs

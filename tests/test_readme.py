@@ -14,7 +14,7 @@ def test_readme_says_how_to_reach_the_tools():
 
 
 def test_readme_warns_that_the_gain_map_takes_minutes():
-    i = README.index("--gain-map takes") if "--gain-map takes" in README else README.index("`--gain-map` runs")
+    i = README.index("`--gain-map` runs")
     assert "about 2 minutes" in README[i:i + 200]
 
 

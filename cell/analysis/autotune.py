@@ -428,6 +428,7 @@ def main(args: argparse.Namespace) -> int:
     out["channel"] = series.channel
     q_p, r_p = res.paper_units()
     out["paper_units"] = {"Q": q_p, "R": r_p}
+    out["apply_refused"] = apply_refusals(res)
     if series.truth is not None:
         x, _, _ = kalman_bank(series.y, [res.Q, 1e-6], [res.R, 1e-4])
         rmse = score_estimates(series, x)["rmse"]
@@ -450,6 +451,9 @@ def main(args: argparse.Namespace) -> int:
               f"(seed 004's Q=1e-6, R=1e-4: {out['rmse_paper_pair']:.2f})")
     for note in res.notes:
         print(f"  note: {note}")
+    refused = apply_refusals(res)
+    if refused:
+        print("  a live autotune would not apply this estimate: " + "; ".join(refused))
     print("  not applied; apply with PATCH /filters/{name} or POST /filters/{name}/autotune "
           '{"apply": true}', file=sys.stderr)
     return 0

@@ -102,3 +102,77 @@ def test_a_saved_script_corrupted_by_hand_is_moved_aside(db, tmp_path):
     assert len(problems) == 1 and "bad.fdv" in problems[0] and "moved to" in problems[0]
     assert mgr.names() == ["good.fdv"]
     assert not (folder / "bad.fdv").exists() and list(folder.glob("bad.fdv.corrupt-*"))
+
+
+def _free_port():
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+SERVICE_KILLS = 4
+
+
+def test_kill_9_of_the_running_service_mid_patch_keeps_a_whole_file(tmp_path):
+    """The real service (``testcell up``) is killed while PATCH and PUT requests stream in:
+    the tuning file and the saved script are whole, and hold what was last acknowledged or
+    something sent after it."""
+    import threading
+    import urllib.request
+
+    rng = random.Random(7)
+    state = tmp_path / "tuning.json"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    env.pop("TESTCELL_TOKEN", None)
+    scripts = {f"[formulas]\npublic MINE\nMINE = EXH_BP_R * {k}\n" for k in range(1000)}
+    q_sent = 0
+    for round_ in range(SERVICE_KILLS):
+        port = _free_port()
+        proc = subprocess.Popen([sys.executable, "-m", "cell", "--log-level", "WARNING", "up",
+                                 "--bus", f"virtual:kill9-{round_}", "--no-sim", "--port", str(port),
+                                 "--state", str(state)], env=env, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+        base = f"http://127.0.0.1:{port}"
+        acked = []
+        stop = threading.Event()
+
+        def hammer():
+            nonlocal q_sent
+            k = 0
+            while not stop.is_set():
+                q_sent += 1
+                q = q_sent * 1e-7
+                body = json.dumps({"Q": q}).encode()
+                try:
+                    req = urllib.request.Request(f"{base}/filters/EXH_BP_R_Kalman", data=body,
+                                                 method="PATCH",
+                                                 headers={"content-type": "application/json"})
+                    urllib.request.urlopen(req, timeout=2).read()
+                    acked.append(q)
+                    text = f"[formulas]\npublic MINE\nMINE = EXH_BP_R * {k % 1000}\n".encode()
+                    req = urllib.request.Request(f"{base}/scripts/mine.fdv", data=text, method="PUT")
+                    urllib.request.urlopen(req, timeout=2).read()
+                    k += 1
+                except OSError:
+                    time.sleep(0.05)
+
+        t = threading.Thread(target=hammer, daemon=True)
+        t.start()
+        deadline = time.monotonic() + 30
+        while not acked and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert acked, "the service never answered"
+        time.sleep(rng.uniform(0.1, 0.6))
+        last_acked = acked[-1]
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        stop.set()
+        t.join(5)
+        data = json.loads(state.read_text())  # whole, parseable
+        q = data["filters"]["EXH_BP_R_Kalman"]["Q"]
+        assert q >= last_acked - 1e-15, (q, last_acked)
+        assert (tmp_path / "scripts" / "mine.fdv").read_text() in scripts
+    store = TuningStore(state)
+    assert store.load() and store.problem is None

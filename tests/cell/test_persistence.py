@@ -138,7 +138,7 @@ def test_kill_9_of_the_running_service_mid_patch_keeps_a_whole_file(tmp_path):
         acked = []
         stop = threading.Event()
 
-        def hammer():
+        def hammer(base=base, acked=acked, stop=stop):
             nonlocal q_sent
             k = 0
             while not stop.is_set():

@@ -167,3 +167,25 @@ def test_websocket_commands_need_the_token():
         with c.websocket_connect("/ws", headers=headers) as w:
             w.send_json(command)
             assert w.receive_json() == {"allowed": allowed}, (headers, command)
+
+
+def test_websocket_handshake_needs_the_token_when_reads_are_protected(db, tmp_path):
+    from starlette.websockets import WebSocketDisconnect
+
+    rt = Runtime(db, native_filters())
+    app = create_app(Cell(runtime=rt), Security(token=TOKEN, protect_reads=True))
+
+    async def hello(websocket: WebSocket):
+        await websocket.accept()
+        await websocket.send_json({"hello": True})
+        await websocket.close()
+
+    app.add_api_websocket_route("/hello", hello)
+    c = TestClient(app)
+    with pytest.raises(WebSocketDisconnect):
+        with c.websocket_connect("/hello") as w:
+            w.receive_json()
+    for kw in ({"headers": GOOD}, {}):
+        url = "/hello" if kw else f"/hello?token={TOKEN}"
+        with c.websocket_connect(url, **kw) as w:
+            assert w.receive_json() == {"hello": True}

@@ -331,10 +331,18 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="shorter runs")
     p.add_argument("--out", default=str(ROOT / "BENCHMARKS.md"))
+    p.add_argument("--report-only", action="store_true",
+                   help="rewrite the Markdown from the last run's raw numbers (BENCHMARKS.json)")
     p.add_argument("--flood", nargs=3, metavar=("BUS", "RATE", "SECONDS"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.flood:
         flood(args.flood[0], float(args.flood[1]), float(args.flood[2]))
+        return 0
+    if args.report_only:
+        raw = json.loads(Path(args.out).with_suffix(".json").read_text())
+        Path(args.out).write_text(report(raw["machine"], raw["e2e"], raw["scripts"], raw["sweep"],
+                                         raw["blocks"], raw["replay_x"], raw["memory"], raw["quick"]))
+        print(f"wrote {args.out}")
         return 0
     m = machine()
     print("end to end (flood over udp_multicast) ...", flush=True)

@@ -7,7 +7,8 @@ loaded and its simulator at a ``--speed`` that puts at least 5 000 frames/s on t
 private udp_multicast group and port). Meanwhile:
 
 - an independent listener joined to the group counts the simulator's frames on the wire;
-- a client polls REST (``/channels/EXH_BP_R``-like values, ``/health``) as fast as it can;
+- a client polls REST (a bus channel's value, ``/health``) as fast as it can, timing each
+  request;
 - a client reads ``/stream`` over WebSocket when the API has that route.
 
 It reports per engine: frames on the wire, frames the runtime counted, frames lost by the
@@ -97,12 +98,15 @@ def get(url: str, token: str | None = None) -> dict:
 
 
 def poll_rest(base: str, channel: str, stop: threading.Event, ages: list[float],
-              errors: list[str]) -> None:
+              errors: list[str], rtts: list[float] | None = None) -> None:
     seen = False
     while not stop.is_set():
         try:
+            sent = time.time()
             ch = get(f"{base}/channels/{channel}")
             now = time.time()
+            if rtts is not None:
+                rtts.append(now - sent)
             seen = True
             if ch["time"] is not None and ch["status"] == "ok":
                 ages.append(now - ch["time"])
@@ -159,6 +163,7 @@ def soak_engine(engine: str, seconds: float, state_dir: Path) -> dict:
     sim_proc = None
     stop = threading.Event()
     ages: list[float] = []
+    rtts: list[float] = []
     errors: list[str] = []
     ws_got = [0]
     try:
@@ -177,7 +182,7 @@ def soak_engine(engine: str, seconds: float, state_dir: Path) -> dict:
                                      "--duration", str(seconds * speed)],
                                     cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
                                     stderr=subprocess.DEVNULL)
-        threads = [threading.Thread(target=poll_rest, args=(base, probe, stop, ages, errors),
+        threads = [threading.Thread(target=poll_rest, args=(base, probe, stop, ages, errors, rtts),
                                     daemon=True)]
         if "/stream" in paths or any(p.startswith("/stream") for p in paths):
             threads.append(threading.Thread(target=stream_ws, args=(port, stop, ws_got, errors),
@@ -205,7 +210,9 @@ def soak_engine(engine: str, seconds: float, state_dir: Path) -> dict:
             out, _ = up.communicate()
         counter.close()
     ages.sort()
+    rtts.sort()
     p99 = ages[int(0.99 * (len(ages) - 1))] * 1000 if ages else float("nan")
+    p99_rtt = rtts[int(0.99 * (len(rtts) - 1))] * 1000 if rtts else float("nan")
     received = h["frames"] - h0["frames"]
     return {
         "engine": engine, "seconds": seconds, "speed": speed,
@@ -213,7 +220,8 @@ def soak_engine(engine: str, seconds: float, state_dir: Path) -> dict:
         "wire_frames": counter.count, "runtime_frames": received,
         "lost": counter.count - received,
         "tick_overruns": h.get("tick_overruns", "not counted on this branch"),
-        "p99_latency_ms": round(p99, 2), "api_samples": len(ages),
+        "p99_latency_ms": round(p99, 2), "p99_request_ms": round(p99_rtt, 2),
+        "api_samples": len(ages),
         "stream_messages": ws_got[0] if len(threads) > 1 else "no /stream on this branch",
         "rss_start_mb": round(rss_start, 1), "rss_warm_mb": round(rss_warm, 1),
         "rss_end_mb": round(rss_end, 1), "rss_growth_mb": round(rss_end - rss_warm, 1),
@@ -241,7 +249,8 @@ def main(argv: list[str] | None = None) -> int:
         r = soak_engine(engine, total / len(engines), state_dir)
         print(f"  {r['wire_frames']} frames on the wire ({r['bus_fps']}/s at --speed {r['speed']}), "
               f"runtime counted {r['runtime_frames']}, lost {r['lost']}; p99 frame->API "
-              f"{r['p99_latency_ms']} ms over {r['api_samples']} answers; RSS {r['rss_start_mb']} MB "
+              f"{r['p99_latency_ms']} ms over {r['api_samples']} answers (p99 request "
+              f"{r['p99_request_ms']} ms); RSS {r['rss_start_mb']} MB "
               f"at start, {r['rss_warm_mb']} after warm-up, {r['rss_end_mb']} at the end "
               f"({r['rss_growth_mb']:+} MB); tick overruns {r['tick_overruns']}", file=sys.stderr)
         results.append(r)

@@ -3,21 +3,36 @@
 ``--bus`` takes ``auto``, ``virtual``, ``udp_multicast``, ``socketcan`` or
 ``INTERFACE:CHANNEL`` (for example ``socketcan:can0``). Without ``--bus``, python-can's own
 ``CAN_INTERFACE``/``CAN_CHANNEL`` environment variables are honoured, then ``auto``.
+
+Two cells on one machine are isolated by multicast group *and* port:
+``udp_multicast:GROUP:PORT`` (default port :data:`MULTICAST_PORT`, python-can's). python-can
+binds its socket to the port on every address, and Linux then delivers to it the datagrams
+of *every* group joined on the machine with that port; the cell's sockets therefore also
+turn off ``IP_MULTICAST_ALL``, so that they receive only their own group.
 """
 
 from __future__ import annotations
 
 import collections
+import logging
 import os
+import socket
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import can
 
 from .errors import BusError
 
+log = logging.getLogger(__name__)
+
+#: Linux's IP_MULTICAST_ALL (not exported by every Python build)
+IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)
+
 MULTICAST_GROUP = "239.74.163.2"
+MULTICAST_PORT = 43113  # python-can's udp_multicast default
 VCAN = "vcan0"
 VIRTUAL_CHANNEL = "testcell"
 
@@ -30,9 +45,40 @@ class BusSpec:
 
     interface: str
     channel: str
+    port: int | None = None
+    """udp_multicast only: the UDP port (``None``: python-can's default)."""
 
     def __str__(self) -> str:
+        if self.port is not None:
+            group = f"[{self.channel}]" if ":" in self.channel else self.channel
+            return f"{self.interface}:{group}:{self.port}"
         return f"{self.interface}:{self.channel}"
+
+    def bus_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``can.Bus`` beyond the interface and channel."""
+        return {"port": self.port} if self.port is not None else {}
+
+
+def _split_port(spec: str, channel: str) -> tuple[str, int | None]:
+    """``GROUP:PORT`` or ``[IPV6]:PORT`` -> (group, port); a bare group -> (group, None)."""
+    group, port = channel, None
+    if channel.startswith("["):
+        group, _, rest = channel[1:].partition("]")
+        if rest:
+            if not rest.startswith(":"):
+                raise BusError(f"--bus {spec!r}: write an IPv6 group with a port as [GROUP]:PORT")
+            port = rest[1:]
+    elif channel.count(":") == 1:
+        group, port = channel.split(":")
+    if port is None:
+        return group, None
+    try:
+        value = int(port)
+    except ValueError:
+        raise BusError(f"--bus {spec!r}: port {port!r} is not a number") from None
+    if not 1024 <= value <= 65535:
+        raise BusError(f"--bus {spec!r}: port must be 1024..65535, got {value}")
+    return group, value
 
 
 def have_socketcan(name: str = VCAN) -> bool:
@@ -46,8 +92,9 @@ def resolve(spec: str | None = None, env: dict[str, str] | None = None) -> BusSp
     if not spec:
         if env.get("CAN_INTERFACE"):
             iface = env["CAN_INTERFACE"]
-            return BusSpec(iface, env.get("CAN_CHANNEL") or _DEFAULT_CHANNEL.get(iface, ""))
-        spec = "auto"
+            spec = f"{iface}:{env.get('CAN_CHANNEL') or _DEFAULT_CHANNEL.get(iface, '')}"
+        else:
+            spec = "auto"
     iface, _, channel = spec.partition(":")
     iface = iface.strip()
     if iface == "auto":
@@ -58,6 +105,9 @@ def resolve(spec: str | None = None, env: dict[str, str] | None = None) -> BusSp
         known = ", ".join(["auto", *sorted(can.interfaces.VALID_INTERFACES)])
         raise BusError(f"unknown bus {iface!r} in --bus {spec!r}; choose one of: {known}")
     channel = channel or env.get("CAN_CHANNEL") or _DEFAULT_CHANNEL.get(iface, "")
+    if iface == "udp_multicast":
+        group, port = _split_port(spec, channel)
+        return BusSpec(iface, group, port)
     return BusSpec(iface, channel)
 
 
@@ -71,9 +121,10 @@ class CellBus:
 
     ECHO_WINDOW_S = 2.0
 
-    def __init__(self, bus: can.BusABC, spec: BusSpec) -> None:
+    def __init__(self, bus: can.BusABC, spec: BusSpec, kwargs: dict[str, Any] | None = None) -> None:
         self.bus = bus
         self.spec = spec
+        self.kwargs = dict(kwargs or {})  # how the bus was opened, for reopen()
         self._drop_echoes = spec.interface == "udp_multicast"
         self._sent: collections.deque[tuple[float, tuple]] = collections.deque()
         self._pending: collections.Counter = collections.Counter()
@@ -131,6 +182,19 @@ class CellBus:
     def shutdown(self) -> None:
         self.bus.shutdown()
 
+    def reopen(self) -> None:
+        """Open the same bus again after it went away (the old one is closed, quietly).
+
+        Raises :class:`BusError` when it cannot be opened yet; the caller retries.
+        """
+        try:
+            self.bus.shutdown()
+        except Exception:  # already gone: nothing to close
+            pass
+        self.bus = _open_raw(self.spec, dict(self.kwargs))
+        self._sent.clear()
+        self._pending.clear()
+
     def __enter__(self) -> CellBus:
         return self
 
@@ -138,9 +202,44 @@ class CellBus:
         self.shutdown()
 
 
+#: Receive buffer asked for on udp_multicast (the kernel caps it at net.core.rmem_max unless
+#: the process may force it): at 50 000 frames/s the default ~200 kB holds a few ms.
+RECEIVE_BUFFER = 8 * 1024 * 1024
+
+
+def _only_own_group(bus: can.BusABC) -> None:
+    """Turn off IP_MULTICAST_ALL on a udp_multicast bus's socket (see the module notes) and
+    enlarge its receive buffer, so that a burst is not dropped by the kernel."""
+    sock = getattr(getattr(bus, "_multicast", None), "_socket", None)
+    if sock is None:
+        return
+    force = getattr(socket, "SO_RCVBUFFORCE", None)
+    for opt in ((force,) if force is not None else ()) + (socket.SO_RCVBUF,):
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, opt, RECEIVE_BUFFER)
+            break
+        except OSError:
+            continue
+    if sock.family != socket.AF_INET:
+        return
+    try:
+        sock.setsockopt(socket.IPPROTO_IP, IP_MULTICAST_ALL, 0)
+    except OSError as exc:  # not Linux: isolation by port only
+        log.debug("IP_MULTICAST_ALL not available: %s", exc)
+
+
 def open_bus(spec: str | BusSpec | None = None, **kwargs) -> CellBus:
     """Open the bus, turning every failure into one :class:`BusError` line that names the fix."""
     resolved = spec if isinstance(spec, BusSpec) else resolve(spec)
+    kwargs = {**resolved.bus_kwargs(), **kwargs}
+    if resolved.interface == "udp_multicast":
+        kwargs.setdefault("receive_own_messages", False)
+    if resolved.interface == "virtual":
+        kwargs.setdefault("receive_own_messages", False)
+    return CellBus(_open_raw(resolved, kwargs), resolved, kwargs)
+
+
+def _open_raw(resolved: BusSpec, kwargs: dict[str, Any]) -> can.BusABC:
     if resolved.interface == "socketcan" and not have_socketcan(resolved.channel):
         raise BusError(
             f"CAN interface {resolved.channel} does not exist: run scripts/setup-vcan.sh "
@@ -151,9 +250,6 @@ def open_bus(spec: str | BusSpec | None = None, **kwargs) -> CellBus:
             import msgpack  # noqa: F401
         except ImportError:
             raise BusError("the udp_multicast bus needs msgpack: pip install msgpack") from None
-        kwargs.setdefault("receive_own_messages", False)
-    if resolved.interface == "virtual":
-        kwargs.setdefault("receive_own_messages", False)
     try:
         bus = can.Bus(interface=resolved.interface, channel=resolved.channel, **kwargs)
     except PermissionError as exc:
@@ -163,4 +259,6 @@ def open_bus(spec: str | BusSpec | None = None, **kwargs) -> CellBus:
         ) from exc
     except (OSError, can.CanError, ImportError, ValueError) as exc:
         raise BusError(f"cannot open CAN bus {resolved}: {exc}") from exc
-    return CellBus(bus, resolved)
+    if resolved.interface == "udp_multicast":
+        _only_own_group(bus)
+    return bus

@@ -101,8 +101,11 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
 
     from .sim import build as build_sim
 
+    from service.security import check_bind
+
     settings = settings.for_simulator()
     spec = resolve(settings.bus)
+    check_bind(settings.host, settings.token)
     _check_port_free(settings.host, settings.port)
     # uvicorn re-raises SIGTERM after its own graceful shutdown; turn it into SystemExit so
     # the finally below still stops the simulator and closes the bus
@@ -114,6 +117,7 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
         build_sim(settings, runtime.db)  # refuse a bad engine or frame set before starting
     store.restore(runtime)
     bus = open_bus(spec)
+    live = None
     sim_proc = None
     sim_thread = None
     sim_bus = None
@@ -140,8 +144,9 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
                  __version__, spec, settings.host, settings.port, store.path)
         serve(create_app(cell), host=settings.host, port=settings.port,
               log_level=settings.log_level.lower())
-        live.stop()
     finally:
+        if live is not None:
+            live.stop()  # before the bus closes, or its receive fails on a closed socket
         sim_stop.set()
         _stop_process(sim_proc)
         if sim_thread is not None:
@@ -163,10 +168,11 @@ def cmd_replay(settings: Settings, args: argparse.Namespace) -> int:
     channels = [c.strip() for c in args.channels.split(",") if c.strip()] if args.channels else None
     result = replay(runtime, args.log, args.out, channels=channels,
                     progress=False if args.quiet else None)
-    print(f"{args.log}: {result.frames} frames, {len(result.rows)} ticks -> {args.out}",
+    print(f"{args.log}: {result.summary()}; {len(result.rows)} ticks -> {args.out}",
           file=sys.stderr)
     if args.plot:
-        wanted = channels or [c for c in PLOT_DEFAULT if c in result.columns]
+        # the back-pressure channels when the log has them, else what the replay computed
+        wanted = channels or [c for c in PLOT_DEFAULT if c in result.columns] or result.columns[1:9]
         plot_channels(args.plot, result.columns, result.rows, wanted, title=str(args.log))
         print(f"plot -> {args.plot}", file=sys.stderr)
     if result.error is not None:

@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from .errors import ConfigError, LogFormatError
 from .lockstep import feed
-from .runtime import Runtime
+from .runtime import MAX_UNKNOWN_IDS, Runtime
 from .tables import write_table
 
 #: python-can readers by suffix; text formats are read line by line so errors carry a line.
@@ -90,7 +90,31 @@ class ReplayResult:
     rows: list[list[Any]] = field(default_factory=list)
     columns: list[str] = field(default_factory=list)
     frames: int = 0
+    decoded: int = 0
+    """Frames that decoded into channels (the rest: unknown IDs, bad lengths, ...)."""
+    unknown_ids: dict[str, int] = field(default_factory=dict)
+    """Frame IDs of the log that no DBC file defines -> frames (most frequent first)."""
+    bad: dict[str, int] = field(default_factory=dict)
+    """Frames that did not decode, by kind."""
     error: LogFormatError | None = None
+
+    def summary(self) -> str:
+        """One line: frames read, decoded, and the IDs no DBC file defines."""
+        text = f"{self.frames} frames, {self.decoded} decoded"
+        other = {k: n for k, n in self.bad.items() if n and k != "unknown_id"}
+        if other:
+            text += " (" + ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in other.items()) + ")"
+        if self.unknown_ids:
+            n = sum(self.unknown_ids.values())
+            ids = ", ".join(f"{i} ({c})" for i, c in list(self.unknown_ids.items())[:12])
+            more = len(self.unknown_ids) - 12
+            text += (f"; {self.bad.get('unknown_id', n)} with IDs in no DBC file: {ids}"
+                     + (f" and {more} more" if more > 0 else ""))
+        return text
+
+
+class NothingDecoded(ConfigError):
+    """No frame of a log decodes with the DBC files given (a foreign log)."""
 
 
 def replay(
@@ -119,14 +143,23 @@ def replay(
 
     result.error = feed(runtime, read_log(log, progress=progress), on_tick).error
     result.frames = runtime.frames
+    result.bad = {k: n for k, n in runtime.decode_errors.items() if n}
+    result.decoded = runtime.frames - sum(result.bad.values())
+    result.unknown_ids = runtime.unknown_id_counts(top=MAX_UNKNOWN_IDS)
+    if result.frames == 0 and result.error is None:
+        raise NothingDecoded(f"{log}: the log holds no frame")
+    if result.frames and result.decoded == 0:
+        raise NothingDecoded(
+            f"{log}: no frame decodes with the DBC files ({result.summary()}); add the DBC "
+            "that defines them with --dbc")
 
     seen = {name for _, row in snapshots for name, v in row.items() if v is not None}
     if channels:
-        unknown = [c for c in channels if c not in runtime.channels]
+        unknown = [c for c in channels if c not in seen]
         if unknown:
             raise ConfigError(
-                f"--channels: no channel {', '.join(unknown)} in this replay; "
-                f"known: {', '.join(sorted(runtime.channels))}"
+                f"--channels: no value for {', '.join(unknown)} in this replay; channels "
+                f"computed: {', '.join(sorted(seen)) or 'none'}"
             )
         names = list(channels)
     else:

@@ -32,6 +32,13 @@ _EPS = 1e-9
 MAX_COUNTED_IDS = 1024
 OTHER_IDS = (-1, False)
 
+#: Kinds of bad frame counted in ``/health``: the decoder's, plus remote and error frames
+#: (which carry no signal values).
+FRAME_ERROR_KINDS = (*DECODE_ERROR_KINDS, "remote_frame", "error_frame")
+
+#: How many distinct unknown frame IDs are remembered (a fuzzed bus has millions).
+MAX_UNKNOWN_IDS = 256
+
 
 @dataclass(frozen=True)
 class Rates:
@@ -128,9 +135,15 @@ class Runtime:
         self.frames = 0
         self.late_frames = 0
         self.decode_errors: collections.Counter[str] = collections.Counter(
-            {k: 0 for k in DECODE_ERROR_KINDS}
+            {k: 0 for k in FRAME_ERROR_KINDS}
         )
+        #: frames whose ID no DBC file defines, by ID (at most MAX_UNKNOWN_IDS distinct IDs)
+        self.unknown_ids: collections.Counter[tuple[int, bool]] = collections.Counter()
         self.block_errors: collections.Counter[str] = collections.Counter()
+        #: outputs withheld from the bus because a block produced NaN or inf, by channel
+        self.withheld: collections.Counter[str] = collections.Counter()
+        #: small state kept for the service between requests (trip onset, reset counter)
+        self.extra_state: dict[str, Any] = {}
         self.last_frame_time: float | None = None
         self.last_tick_time: float | None = None
         self._frame_times: collections.deque[float] = collections.deque(maxlen=20_000)
@@ -185,9 +198,11 @@ class Runtime:
                 ch.unit = ch.unit or unit
 
     def remove_block(self, name: str) -> Block:
+        """Remove a block, its output channels and its error counts (they ended with it)."""
         with self.lock:
             block = self.block(name)
             del self.blocks[name]
+            self.block_errors.pop(name, None)
             for key, route in list(self._streams.items()):
                 route.blocks = [b for b in route.blocks if b is not block]
                 if not route.blocks:
@@ -196,6 +211,7 @@ class Runtime:
                 self.producer.pop(out, None)
                 self._channels.pop(out, None)
                 self._history.drop(out)
+                self.withheld.pop(out, None)
             return block
 
     def _stream_layout(self, stream: str, block: str) -> StreamLayout:
@@ -313,12 +329,19 @@ class Runtime:
                         self.last_frame_time = ts
                     else:
                         self.late_frames += 1
+                    if msg.is_error_frame or msg.is_remote_frame:
+                        self.decode_errors["error_frame" if msg.is_error_frame
+                                           else "remote_frame"] += 1
+                        continue
                     message = by_id.get(key)
                     if message is None or len(msg.data) != message.length:
                         try:
                             self.db.check(msg)  # the one place that words the error
                         except FrameDecodeError as exc:
                             self.decode_errors[exc.kind] += 1
+                            if exc.kind == "unknown_id" and (
+                                    key in self.unknown_ids or len(self.unknown_ids) < MAX_UNKNOWN_IDS):
+                                self.unknown_ids[key] += 1
                         continue
                     if streams:
                         route = streams.get(key)
@@ -448,6 +471,8 @@ class Runtime:
                 ch.update(float(value), t)
                 if ch.status != OK:
                     self.block_errors[block.name] += 1
+                    if not math.isfinite(ch.value):
+                        self.withheld[out] += 1  # _emit keeps it off the bus
                     if out in reasons:
                         ch.mark(INVALID, reasons[out])
                 updated.add(out)
@@ -499,6 +524,13 @@ class Runtime:
             self.channel(name)  # 404 for an unknown channel
             return self._history.series(name, seconds)
 
+    def unknown_id_counts(self, top: int = 32) -> dict[str, int]:
+        """The most frequent frame IDs that no DBC defines, as ``"0x123"`` (``x`` suffix:
+        extended) -> frames."""
+        with self.lock:
+            return {f"0x{i:X}{'x' if ext else ''}": n
+                    for (i, ext), n in self.unknown_ids.most_common(top)}
+
     def health(self) -> dict[str, Any]:
         with self.lock:
             return {
@@ -506,11 +538,14 @@ class Runtime:
                 "frames_per_s": self.frames_per_second(),
                 "decode_errors": dict(self.decode_errors),
                 "late_frames": self.late_frames,
+                "unknown_ids": self.unknown_id_counts(),
                 "block_errors": dict(self.block_errors),
                 "streams": {r.layout.name: r.tracker.counts.as_dict() for r in self._streams.values()},
+                "withheld": dict(self.withheld),
+                "tick_overruns": self.tick_overruns,
                 "last_frame_time": self.last_frame_time,
                 "bus_time": self.now,
             }
 
 
-__all__ = ["Rates", "Runtime"]
+__all__ = ["FRAME_ERROR_KINDS", "Rates", "Runtime"]

@@ -19,7 +19,14 @@ from .errors import ConfigError, UnknownBlockError
 from .formula import ScriptBlock, ScriptError, load_script, shipped_scripts
 from .formula.registry import suffix_of
 from .runtime import Runtime
-from .tuning import TuningStore, write_text_atomic
+from .tuning import TuningStore, aside_path, write_text_atomic
+
+
+def remove_stale_temporaries_in(folder: Path) -> None:
+    """Delete the temporary files (``.NAME.xxxx``) a writer killed mid-write left."""
+    for tmp in folder.glob(".*"):
+        if tmp.is_file():
+            tmp.unlink(missing_ok=True)
 
 log = logging.getLogger(__name__)
 
@@ -82,13 +89,21 @@ class ScriptManager:
                 if name not in removed:
                     entries[name] = Sources(text, ravg, shipped=True)
         if self.folder and self.folder.is_dir():
+            remove_stale_temporaries_in(self.folder)
             for path in sorted(self.folder.iterdir()):
-                if suffix_of(path.name) in (".fdv", ".labels"):
-                    ravg = path.with_suffix(".ravg")
-                    entries[path.name] = Sources(path.read_text(),
-                                                 ravg.read_text() if ravg.exists() else None)
-                elif suffix_of(path.name) == ".ravg" and not path.with_suffix(".labels").exists():
-                    entries[path.name] = Sources(path.read_text())
+                try:
+                    if suffix_of(path.name) in (".fdv", ".labels"):
+                        ravg = path.with_suffix(".ravg")
+                        entries[path.name] = Sources(path.read_text(encoding="utf-8"),
+                                                     ravg.read_text(encoding="utf-8")
+                                                     if ravg.exists() else None)
+                    elif suffix_of(path.name) == ".ravg" and not path.with_suffix(".labels").exists():
+                        entries[path.name] = Sources(path.read_text(encoding="utf-8"))
+                except (OSError, UnicodeDecodeError) as exc:
+                    aside = aside_path(path)
+                    path.replace(aside)
+                    problems.append(f"{path.name}: unreadable ({exc}); moved to {aside}")
+                    log.warning("saved script %s is unreadable (%s); moved to %s", path, exc, aside)
         for name, src in entries.items():
             try:
                 self._install(name, src)
@@ -221,6 +236,15 @@ class ScriptManager:
         write_text_atomic(self.folder / name, src.text)
         if src.ravg is not None and suffix_of(name) == ".labels":
             write_text_atomic((self.folder / name).with_suffix(".ravg"), src.ravg)
+
+    def unknown_inputs(self, name: str) -> list[str]:
+        """Inputs of a script that no channel of the cell provides: no DBC signal, no block
+        output, no channel seen. Its outputs would stay stale, so callers warn by name."""
+        rt = self.runtime
+        with rt.lock:
+            block = self.block(name)
+            known = set(rt.db.signals) | set(rt.producer) | set(rt.channels)
+            return [i for i in block.inputs if i not in known]
 
     def describe(self, name: str) -> dict[str, Any]:
         with self.runtime.lock:

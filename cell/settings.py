@@ -116,7 +116,8 @@ def _words(text: str) -> tuple[str, ...]:
 #: How a ``TESTCELL_<KEY>`` value is read (others are text).
 _ENV_PARSERS: dict[str, Callable[[str], Any]] = {
     "seed": int, "speed": float, "duration": float, "port": int, "state": Path, "osc_init": float,
-    "native": _bool, "no_controllers": _bool, "no_sim": _bool,
+    "native": _bool, "no_controllers": _bool, "no_sim": _bool, "protect_reads": _bool,
+    "max_body": int, "max_script": int,
     "dbc": _words, "scripts": _words, "plugins": _words,
 }
 
@@ -150,6 +151,15 @@ class Settings:
     port: int = 8000
     state: Path | None = None
     no_sim: bool = False
+    token: str | None = field(default=None, repr=False)
+    """Bearer token every state-changing request needs (``TESTCELL_TOKEN``; never a flag,
+    so it does not show in the process list)."""
+    protect_reads: bool = False
+    """With a token: reads need it too."""
+    max_body: int = 1024 * 1024
+    """Largest request body in bytes (413 above)."""
+    max_script: int = 256 * 1024
+    """Largest script in bytes (413 above)."""
     # -- the process --------------------------------------------------------------------
     log_level: str = "INFO"
     plugins: tuple[str, ...] = ()
@@ -219,6 +229,12 @@ class Settings:
         """Validate every value; :class:`ConfigError` names the option."""
         from . import registry
 
+        for key in ("max_body", "max_script"):
+            value = getattr(self, key)
+            if not isinstance(value, int) or not 1024 <= value <= 64 * 1024 * 1024:
+                raise ConfigError(f"TESTCELL_{key.upper()} must be 1024..67108864 bytes, got {value}")
+        if self.token is not None and not self.token.strip():
+            raise ConfigError("TESTCELL_TOKEN is empty: set a token, or unset the variable")
         if self.log_level not in LOG_LEVELS:
             raise ConfigError(f"--log-level {self.log_level!r}: choose one of {', '.join(LOG_LEVELS)}")
         if self.osc_init is not None and not (math.isfinite(self.osc_init)

@@ -1,8 +1,12 @@
 """Saving accepted tuning atomically and restoring it at start-up.
 
 The file is JSON, ``{"filters": {name: {param: value}}, ...}``. It is written to a
-temporary file in the same folder and renamed over the old one, so a crash mid-write
-never leaves half a file. A file that cannot be read is moved aside, never overwritten.
+temporary file in the same folder, flushed to disk (``fsync``), renamed over the old one
+(``os.replace``) and the folder synced, so a crash or ``kill -9`` at any moment leaves the
+old file or the new one, never half a file. A file that cannot be read, or whose shape is
+wrong, is moved aside (``tuning.json.corrupt-<time>``, never overwritten) with a warning
+naming both paths, and the cell starts from its defaults. Temporary files left by a killed
+writer are removed at the next load.
 """
 
 from __future__ import annotations
@@ -15,8 +19,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+from typing import TYPE_CHECKING
+
 from .errors import ConfigError, ParamError, UnknownBlockError
-from .runtime import Runtime
+
+if TYPE_CHECKING:
+    from .runtime import Runtime
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +47,64 @@ def write_text_atomic(path: Path, text: str) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    _sync_dir(path.parent)
+
+
+def _sync_dir(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (a no-op where folders cannot be opened)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def remove_stale_temporaries(path: Path) -> list[Path]:
+    """Delete the temporary files a writer killed mid-write left beside ``path``."""
+    removed = []
+    if path.parent.is_dir():
+        for tmp in path.parent.glob(f".{path.name}.*"):
+            try:
+                tmp.unlink()
+                removed.append(tmp)
+            except OSError:
+                pass
+    return removed
+
+
+def aside_path(path: Path) -> Path:
+    """Where a corrupt file is moved: ``NAME.corrupt-<time>``, never over an earlier one."""
+    stem = f"{path.name}.corrupt-{time.strftime('%Y%m%dT%H%M%S')}"
+    aside, n = path.with_name(stem), 1
+    while aside.exists():
+        aside, n = path.with_name(f"{stem}-{n}"), n + 1
+    return aside
+
+
+def _shape_problem(data: Any) -> str | None:
+    """What is wrong with the structure of a tuning file, or ``None``."""
+    if not isinstance(data, dict):
+        return "top level must be an object of sections"
+    for section, entries in data.items():
+        if not isinstance(entries, dict):
+            return f"section {section!r} must be an object"
+        if section == "scripts":
+            if not isinstance(entries.get("removed", []), list) or not all(
+                    isinstance(n, str) for n in entries.get("removed", [])):
+                return "scripts.removed must be a list of script names"
+            consts = entries.get("constants", {})
+            if not isinstance(consts, dict) or not all(isinstance(v, dict) for v in consts.values()):
+                return "scripts.constants must map script names to objects"
+            continue
+        for name, params in entries.items():
+            if not isinstance(params, dict):
+                return f"{section}.{name} must be an object of parameters"
+    return None
 
 
 def write_atomic(path: Path, data: dict[str, Any]) -> None:
@@ -52,21 +118,27 @@ class TuningStore:
     def __init__(self, path: Path | str | None) -> None:
         self.path = Path(path) if path else default_path()
         self.data: dict[str, dict[str, dict[str, Any]]] = {}
+        #: why the file was set aside at the last load (``None``: it was fine)
+        self.problem: str | None = None
 
     def load(self) -> dict[str, dict[str, dict[str, Any]]]:
         """Read the file; a corrupt one is moved aside (``.corrupt-<time>``) and reported."""
+        for tmp in remove_stale_temporaries(self.path):
+            log.info("removed %s, left by a write that was interrupted", tmp)
         if not self.path.exists():
             self.data = {}
             return self.data
         try:
             data = json.loads(self.path.read_text())
-            if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
-                raise ValueError("top level must be an object of sections")
+            problem = _shape_problem(data)
+            if problem:
+                raise ValueError(problem)
         except (OSError, ValueError) as exc:
-            aside = self.path.with_name(f"{self.path.name}.corrupt-{int(time.time())}")
+            aside = aside_path(self.path)
             self.path.replace(aside)
-            log.warning("tuning file %s is unreadable (%s); moved to %s, starting from defaults",
-                        self.path, exc, aside)
+            self.problem = (f"tuning file {self.path} is unreadable ({exc}); moved to {aside}, "
+                            "starting from defaults")
+            log.warning("%s", self.problem)
             self.data = {}
             return self.data
         self.data = data

@@ -9,7 +9,9 @@ from cell.context import Cell
 
 from . import errors
 from .metrics import FrameRates
-from .routes import channels, filters, health, metrics, page, scenario, scripts, simulator, stream
+from .routes import channels, engine, filters, health, metrics, page, scenario, scripts, simulator, stream
+from .schemas import ERROR_RESPONSES
+from .security import Security, SecurityMiddleware
 from .stream import StreamHub
 from .routes.blocks import block_router
 
@@ -17,17 +19,26 @@ from .routes.blocks import block_router
 FAMILY_ROUTES: dict[str, Callable[[APIRouter], None]] = {"filter": filters.add_routes}
 
 
-def create_app(cell: Cell) -> FastAPI:
-    """The app of ``cell``: one router per block family the cell has, plus the fixed ones."""
+def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
+    """The app of ``cell``: one router per block family the cell has, plus the fixed ones.
+
+    ``security`` (default: from the cell's settings, else open with the default limits)
+    decides who may change the cell and how large a request may be (:mod:`service.security`).
+    """
     app = FastAPI(
         title="testcell",
         version=__version__,
         description="Live values and tuning of an emulated engine test cell that speaks CAN.",
+        responses=ERROR_RESPONSES,
     )
     registry.load_plugins()
     app.state.cell = cell
     app.state.hub = StreamHub(cell.runtime)
     app.state.frame_rates = FrameRates(cell.runtime)
+    settings = cell.extra.get("settings")
+    security = security or (Security.from_settings(settings) if settings else Security())
+    app.state.security = security
+    app.add_middleware(SecurityMiddleware, security=security)
     errors.install(app)
     app.include_router(health.router)
     app.include_router(channels.router)
@@ -42,5 +53,6 @@ def create_app(cell: Cell) -> FastAPI:
     app.include_router(stream.router)
     app.include_router(metrics.router)
     app.include_router(simulator.router)
+    app.include_router(engine.router)
     app.include_router(page.router)
     return app

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 
 class ChannelOut(BaseModel):
@@ -30,14 +30,26 @@ class HistoryOut(BaseModel):
     points: list[HistoryPoint]
 
 
+class TripOut(BaseModel):
+    state: str
+    reason: str
+    since: float | None
+
+
 class HealthOut(BaseModel):
-    status: Literal["ok", "waiting"]
+    status: Literal["ok", "waiting", "degraded"]
+    reasons: list[str]
+    trip: TripOut | None
     bus: str
     frames: int
     frames_per_s: float
     decode_errors: dict[str, int]
+    unknown_ids: dict[str, int]
     late_frames: int
     block_errors: dict[str, int]
+    withheld: dict[str, int]
+    tick_overruns: int = Field(0, description="ticks whose work took longer than the period of "
+                                              "the fastest task in them (also in /metrics)")
     last_frame_time: float | None
     bus_time: float | None
     runtime_running: bool
@@ -58,3 +70,20 @@ class BlockOut(BaseModel):
     outputs: list[str]
     params: dict[str, Any]
     state: dict[str, Any]
+
+
+class ErrorOut(BaseModel):
+    """An error: ``detail`` says what was wrong and where (other fields by route)."""
+
+    model_config = ConfigDict(extra="allow")
+    detail: Any
+
+
+#: Error answers any route may give, documented once for the whole API.
+ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorOut, "description": "Bad input (e.g. a script that does not compile)"},
+    401: {"model": ErrorOut, "description": "The cell's token is needed (TESTCELL_TOKEN)"},
+    404: {"model": ErrorOut, "description": "No such channel, block or script"},
+    409: {"model": ErrorOut, "description": "Refused: conflicts with the cell's state"},
+    413: {"model": ErrorOut, "description": "Request body or script over its limit"},
+}

@@ -78,6 +78,8 @@ from .scores import score_estimates
 METHODS = ("ml", "als")
 #: Fewest valid samples :func:`autotune` accepts.
 MIN_SAMPLES = 50
+#: Fewer valid samples than this and an estimate is shown but never applied to a live filter.
+APPLY_MIN_SAMPLES = 600
 #: Coarse search range of Q/R.
 RATIO_RANGE = (1e-8, 1e2)
 #: chi-squared(1) 95 % quantile / 2.
@@ -356,6 +358,21 @@ def autotune(
     )
 
 
+def apply_refusals(result: TuneResult) -> list[str]:
+    """Why an estimate must not be applied to a running filter (empty: it may be).
+
+    Every note the tuner makes flags an estimate it cannot vouch for: Q/R at the edge of the
+    search range (a Q/R of 1e-8 freezes the filter a controller reads), an interval reaching
+    the range, a floored Q or R; so does too little data (fewer than
+    :data:`APPLY_MIN_SAMPLES` valid samples).
+    """
+    reasons = list(result.notes)
+    if result.n < APPLY_MIN_SAMPLES:
+        reasons.append(f"too little data: {result.n} valid samples, at least "
+                       f"{APPLY_MIN_SAMPLES} are needed to apply an estimate")
+    return reasons
+
+
 def em_reference(
     y: Sequence[float | None] | np.ndarray, n_iter: int = 30, Q0: float | None = None,
     R0: float | None = None,
@@ -411,6 +428,7 @@ def main(args: argparse.Namespace) -> int:
     out["channel"] = series.channel
     q_p, r_p = res.paper_units()
     out["paper_units"] = {"Q": q_p, "R": r_p}
+    out["apply_refused"] = apply_refusals(res)
     if series.truth is not None:
         x, _, _ = kalman_bank(series.y, [res.Q, 1e-6], [res.R, 1e-4])
         rmse = score_estimates(series, x)["rmse"]
@@ -433,10 +451,13 @@ def main(args: argparse.Namespace) -> int:
               f"(seed 004's Q=1e-6, R=1e-4: {out['rmse_paper_pair']:.2f})")
     for note in res.notes:
         print(f"  note: {note}")
+    refused = apply_refusals(res)
+    if refused:
+        print("  a live autotune would not apply this estimate: " + "; ".join(refused))
     print("  not applied; apply with PATCH /filters/{name} or POST /filters/{name}/autotune "
           '{"apply": true}', file=sys.stderr)
     return 0
 
 
-__all__ = ["METHODS", "TuneResult", "add_arguments", "autotune", "em_reference", "loglik",
-           "main", "profile_loglik"]
+__all__ = ["APPLY_MIN_SAMPLES", "METHODS", "TuneResult", "add_arguments", "apply_refusals",
+           "autotune", "em_reference", "loglik", "main", "profile_loglik"]

@@ -110,7 +110,7 @@ def plot_png(
                 ax.plot(t, x[sel, i], lw=1.2, label=lbl,
                         color=("tab:blue", "tab:green", "tab:purple", "tab:cyan", "tab:olive")[i % 5])
         ax.set_xlabel("time [s]")
-        ax.set_ylabel(series.channel)
+        ax.set_ylabel(f"{series.channel} [{series.unit or 'no unit'}]")
         ax.grid(alpha=0.3)
     axes[0].set_title(f"{Path(series.source).name}: best {len(best)} Q/R pairs "
                       "(seed 004, Figures 7-8)")

@@ -53,6 +53,8 @@ class Series:
     rate_hz: float = 10.0
     source: str = "array"
     frames: int = 0
+    unit: str = ""
+    """The channel's unit (from the DBC), for axes and tables."""
 
     @property
     def n(self) -> int:
@@ -175,6 +177,7 @@ def channel_series(
         rate_hz=rt.rates.MED,
         source=str(log_path),
         frames=frames,
+        unit=rt.channels[channel].unit,
     )
 
 

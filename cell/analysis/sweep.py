@@ -326,10 +326,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--truth", default=None,
                         help="truth channel (default <channel>_TRUE when the log has it)")
     parser.add_argument("--no-truth", action="store_true", help="ignore truth in the log")
-    parser.add_argument("--out-dir", default=".", type=Path,
-                        help="folder for sweep_<channel>.csv/.png/.jsonl (default: current)")
+    parser.add_argument("--out-dir", default=None, type=Path,
+                        help="write sweep_<channel>.csv, .jsonl and .png into this folder and "
+                             "print their paths (default: write no file)")
     parser.add_argument("--json", action="store_true",
-                        help="print one JSON object per pair instead of the table")
+                        help="print JSON Lines (one JSON object per pair, per line) instead of "
+                             "the table")
     parser.add_argument("--top", type=int, default=10, help="rows printed (default 10)")
     parser.add_argument("--plot-top", type=int, default=3, help="pairs plotted (default 3)")
     parser.add_argument("--no-plot", action="store_true", help="do not write the PNG")
@@ -347,15 +349,18 @@ def main(args: argparse.Namespace) -> int:
     pairs = parse_grid(args.grid)  # fail on a bad grid before reading the log
     series = load_series(args)
     ranked = sweep(series, pairs)
-    out_dir = Path(args.out_dir)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out-dir {out_dir}: {exc.strerror or exc}") from None
-    stem = f"sweep_{series.channel}"
-    written = [write_csv(out_dir / f"{stem}.csv", ranked), write_jsonl(out_dir / f"{stem}.jsonl", ranked)]
-    if not args.no_plot:
-        written.append(plot_png(out_dir / f"{stem}.png", series, ranked, top=args.plot_top))
+    written = []
+    if args.out_dir is not None:
+        out_dir = Path(args.out_dir)
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"--out-dir {out_dir}: {exc.strerror or exc}") from None
+        stem = f"sweep_{series.channel}"
+        written = [write_csv(out_dir / f"{stem}.csv", ranked),
+                   write_jsonl(out_dir / f"{stem}.jsonl", ranked)]
+        if not args.no_plot:
+            written.append(plot_png(out_dir / f"{stem}.png", series, ranked, top=args.plot_top))
     distinct = len(ranked)
     head = (f"{series.source}: {series.channel}, {series.n} ticks at {series.rate_hz:g} Hz "
             f"({series.valid} valid), truth {series.truth_channel or 'none'}; "
@@ -368,7 +373,8 @@ def main(args: argparse.Namespace) -> int:
     else:
         print(head)
         print(format_table(ranked, args.top, references(series)))
-    print("wrote " + ", ".join(str(p) for p in written), file=sys.stderr)
+    for path in written:
+        print(f"wrote {path}", file=sys.stderr)
     return 0
 
 

@@ -81,7 +81,9 @@ class ScalarKalman(Block):
         P_{k|k} = (1 - K_k) P_{k|k-1}
 
     The first sample sets :math:`\hat x_0 = y_0` and :math:`P_0`. Defaults are the paper's
-    best pair, Q = 1e-6 and R = 1e-4. Changing Q or R keeps the estimate and P.
+    best pair, Q = 1e-6 and R = 1e-4. Changing Q or R keeps the estimate and P. An input so
+    large that the estimate leaves the float range resets the filter (the next sample starts
+    it again) and marks that tick invalid; :math:`0 \le K \le 1` keeps :math:`P \ge 0`.
     """
 
     kind = "kalman"
@@ -110,6 +112,7 @@ class ScalarKalman(Block):
         self.P = self.P0
         self.K = 0.0
         self.n = 0
+        self.resets = 0
 
     def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         y = inputs[self.source]
@@ -118,7 +121,11 @@ class ScalarKalman(Block):
         else:
             P_prior = self.P + self.Q
             self.K = P_prior / (P_prior + self.R)
-            self.x = self.x + self.K * (y - self.x)
+            x = self.x + self.K * (y - self.x)
+            if not math.isfinite(x):  # an input beyond the float range: start again
+                self.x, self.P, self.resets = None, self.P0, self.resets + 1
+                raise ArithmeticError(f"non-finite estimate from input {y!r}; filter reset")
+            self.x = x
             self.P = (1.0 - self.K) * P_prior
         self.n += 1
         return {self.name: self.x}

@@ -433,8 +433,9 @@ def plot_figure10(path: Path, cases: Sequence[CaseResult], summaries: Sequence[S
         c = traced[fb]
         tr = c.trace
         t = np.asarray(tr["t"])
-        ax.axhspan(setpoint * (1 - BAND), setpoint * (1 + BAND), color="tab:green", alpha=0.15)
-        ax.axhline(setpoint, color="tab:green", lw=0.8)
+        ax.axhspan(setpoint * (1 - BAND), setpoint * (1 + BAND), color="tab:green", alpha=0.15,
+                   label=f"settling band ±{BAND:.0%}")
+        ax.axhline(setpoint, color="tab:green", lw=0.8, label=f"setpoint {setpoint:g} mmH2O")
         ax.plot(t, tr["bp_R"], color="tab:blue", lw=1.0, label="EXH_BP_R_TRUE")
         ax.set_ylabel("mmH2O")
         ax.set_ylim(0, 1300)
@@ -448,8 +449,11 @@ def plot_figure10(path: Path, cases: Sequence[CaseResult], summaries: Sequence[S
         ax.set_title(f"{fb} feedback (seed {c.seed}, kp={c.kp:g}, ki={c.ki:g}): {settle}{trip}",
                      fontsize=9)
         if c.settling_time_s is not None:
-            ax.axvline(c.settling_time_s, color="k", ls="--", lw=0.8)
+            ax.axvline(c.settling_time_s, color="k", ls="--", lw=0.8, label="settled")
         ax.grid(alpha=0.3)
+        handles, labels = ax.get_legend_handles_labels()
+        h2, l2 = ax2.get_legend_handles_labels()
+        ax2.legend(handles + h2, labels + l2, fontsize=7, loc="upper right", ncol=2)
     axes[-1, 0].set_xlabel("time after switching to closed loop [s]")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -461,7 +465,11 @@ def plot_gain_map(path: Path, grids: dict[str, dict[tuple[float, float], Summary
     """Median settling time over kp × ki, one heat map per feedback; ✕ = never settles."""
     plt = _pyplot()
     fbs = list(grids)
-    fig, axes = plt.subplots(1, len(fbs), figsize=(4.2 * len(fbs), 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(fbs), figsize=(4.8 * len(fbs), 4.6), squeeze=False,
+                             layout="constrained")
+    settled = [s.settling_time_s for g in grids.values() for s in g.values()
+               if s.settling_time_s is not None]
+    vmax = max(50.0, math.ceil(max(settled, default=0.0) / 50.0) * 50.0)  # no cell beyond the bar
     for ax, fb in zip(axes[0], fbs, strict=True):
         grid = grids[fb]
         kps = sorted({k for k, _ in grid})
@@ -470,16 +478,16 @@ def plot_gain_map(path: Path, grids: dict[str, dict[tuple[float, float], Summary
         for (kp, ki), s in grid.items():
             if s.settling_time_s is not None:
                 z[kps.index(kp), kis.index(ki)] = s.settling_time_s
-        im = ax.imshow(z, origin="lower", cmap="viridis_r", aspect="auto", vmin=0, vmax=200)
+        im = ax.imshow(z, origin="lower", cmap="viridis_r", aspect="auto", vmin=0, vmax=vmax)
         for i in range(len(kps)):
             for j in range(len(kis)):
                 v = z[i, j]
                 ax.text(j, i, "✕" if np.isnan(v) else f"{v:.0f}", ha="center", va="center",
-                        fontsize=8, color="w" if np.isnan(v) or v > 100 else "k")
+                        fontsize=8, color="w" if np.isnan(v) or v > vmax / 2 else "k")
         best = best_gains(grid)
-        ax.set_title(f"{fb}: best {_fmt(best.settling_time_s, '.0f')} s at "
-                     f"kp={best.kp:g}, ki={best.ki:g}", fontsize=9)
-        ax.set_xticks(range(len(kis)), [f"{k:g}" for k in kis])
+        ax.set_title(f"{fb}: best {_fmt(best.settling_time_s, '.0f')} s\n"
+                     f"at kp={best.kp:g}, ki={best.ki:g}", fontsize=9)
+        ax.set_xticks(range(len(kis)), [f"{k:g}" for k in kis], rotation=45, ha="right")
         ax.set_yticks(range(len(kps)), [f"{k:g}" for k in kps])
         ax.set_xlabel("ki [%/(mmH2O·s)]")
         ax.set_ylabel("kp [%/mmH2O]")

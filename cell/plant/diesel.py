@@ -292,7 +292,8 @@ class DieselEngine(Plant):
     Speed and torque follow the duty cycle's setpoints (:func:`engine_rhs`, discretised
     exactly for the step); fuel and exhaust flow follow from them. When the protection
     trips the engine (input ``ENGINE_STATE`` = 2) the fuel is cut and speed and torque
-    run down with their own time constants, to standstill below ``stop_speed``.
+    run down with their own time constants, to standstill below ``stop_speed``; when the
+    trip is reset (``ENGINE_STATE`` back to 1) the engine restarts and follows its cycle.
 
     Parameters
     ----------
@@ -340,7 +341,9 @@ class DieselEngine(Plant):
 
     def step(self, t: float, u: Mapping[str, float]) -> None:
         if self.state == RUNNING and u.get("ENGINE_STATE", RUNNING) != RUNNING:
-            self.state = int(u["ENGINE_STATE"])  # tripped: stays down until restarted
+            self.state = int(u["ENGINE_STATE"])  # tripped: stays down until reset
+        elif self.state == TRIPPED and u.get("ENGINE_STATE") == RUNNING:
+            self.state = RUNNING  # the trip was reset (ENGINE_RESET): restart and follow the cycle
         if self.state == RUNNING:
             sp_speed, sp_load = self.schedule.setpoint(t)
             self.speed += self._a_speed * (sp_speed - self.speed)

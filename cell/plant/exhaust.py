@@ -8,7 +8,9 @@ Signal chain per bank (seed 004: back-pressure "noisy and erratic", +-200 mmH2O 
 
 The engine protection watches the noise-free back-pressure of both banks; above
 ``bp_limit`` it trips the engine (``ENGINE_STATE`` = 2, read by the engine, which runs
-down). Seed 004's raw-signal loop "triggered an engine limit".
+down). Seed 004's raw-signal loop "triggered an engine limit". A trip holds until the
+operator resets it: each new value of ``ENGINE_RESET`` (``POST /engine/reset``, or
+``testcell scenario engine_reset=N``) re-arms the protection and restarts the engine.
 """
 
 from __future__ import annotations
@@ -222,7 +224,7 @@ class ExhaustBanks(Plant):
     The banks start in steady state at the engine's initial flow.
     """
 
-    inputs = ("ENGINE_SPEED", "EXH_FLOW_TRUE", "VALVE_DEMAND_L", "VALVE_DEMAND_R")
+    inputs = ("ENGINE_SPEED", "EXH_FLOW_TRUE", "VALVE_DEMAND_L", "VALVE_DEMAND_R", "ENGINE_RESET")
     outputs = ("EXH_BP_L", "EXH_BP_R", "VALVE_POS_L", "VALVE_POS_R", "ENGINE_STATE",
                "TRIP_REASON", "EXH_BP_LIMIT", "EXH_BP_L_TRUE", "EXH_BP_R_TRUE",
                "VALVE_POS_L_TRUE", "VALVE_POS_R_TRUE")
@@ -240,6 +242,7 @@ class ExhaustBanks(Plant):
         self.trip_reason = TRIP_NONE
         self.trip_bank: str | None = None  # bank whose back-pressure tripped the engine
         self.trip_time: float | None = None  # simulation time of the trip, s
+        self._reset_seen: float | None = None  # last ENGINE_RESET value acted on
         self._a_gas = lag_factor(p.period, p.tau_gas)
         self._n_delay = max(0, round(p.sensor_delay / p.period))
         self.valves = {b: Valve(initial_valve, p) for b in BANKS}
@@ -324,6 +327,13 @@ class ExhaustBanks(Plant):
             else:
                 self.truth[b] = pg
         self._delay_i = (j + 1) % n
+        reset = u.get("ENGINE_RESET")
+        if reset is not None and reset != self._reset_seen:
+            self._reset_seen = reset  # a new counter value: the operator reset the trip
+            if self.state == TRIPPED:
+                self.state = RUNNING
+                self.trip_reason = TRIP_NONE
+                self.trip_bank = self.trip_time = None
         if self.state == RUNNING:
             for b in BANKS:
                 if self.p_gas[b] > self.bp_limit:

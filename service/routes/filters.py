@@ -8,9 +8,10 @@ input alone and applies them only when asked.
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, HTTPException
+from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
-from cell.analysis.autotune import autotune
+from cell.analysis.autotune import apply_refusals, autotune
 from cell.errors import ConfigError
 
 from ..deps import CellDep
@@ -32,7 +33,8 @@ def add_routes(router: APIRouter) -> None:
 def autotune_filter(name: str, cell: CellDep, body: AutotuneIn | None = None) -> dict[str, Any]:
     """Estimate Q and R from the last ``minutes`` of the filter's input (no truth needed):
     maximum likelihood on the innovations, with a confidence interval. Applied (and saved)
-    only with ``"apply": true``."""
+    only with ``"apply": true``, and never when the tuner flags its own estimate (at the edge
+    of the search range, too little data, ...): then 409, naming why, and nothing changes."""
     body = body or AutotuneIn()
     rt = cell.runtime
     with rt.lock:
@@ -48,7 +50,12 @@ def autotune_filter(name: str, cell: CellDep, body: AutotuneIn | None = None) ->
     except ConfigError as exc:
         raise HTTPException(422, detail=[{"loc": ["body", "minutes"], "type": "value_error",
                                           "msg": str(exc)}]) from None
-    applied = None
+    out = {**result.to_dict(), "filter": name, "samples_used": len(y), "applied": None}
     if body.apply:
-        applied = cell.tune("filter", name, {"Q": result.Q, "R": result.R})
-    return {**result.to_dict(), "filter": name, "samples_used": len(y), "applied": applied}
+        refused = apply_refusals(result)
+        if refused:
+            return JSONResponse(status_code=409, content={
+                **out, "refused": refused,
+                "detail": f"not applied to {name}: " + "; ".join(refused)})
+        out["applied"] = cell.tune("filter", name, {"Q": result.Q, "R": result.R})
+    return out

@@ -1,5 +1,7 @@
 from fastapi import APIRouter
 
+from cell.supervision import assess
+
 from ..deps import CellDep
 from ..schemas import HealthOut
 
@@ -8,11 +10,13 @@ router = APIRouter(tags=["health"])
 
 @router.get("/health", response_model=HealthOut)
 def health(cell: CellDep) -> HealthOut:
-    """Bus, frame rate, decode errors by kind, the time of the last frame, and the sample
-    streams' order and loss counts."""
+    """Status (``ok``, ``waiting`` or ``degraded`` with the reasons: bus silent or lost, the
+    engine tripped), frame rate, bad frames by kind, unknown frame IDs, block errors, outputs
+    withheld for not being finite, the time of the last frame, and the sample streams' order
+    and loss counts."""
     h = cell.runtime.health()
     return HealthOut(
-        status="ok" if h["frames"] else "waiting",
+        **assess(cell.runtime, cell.live),
         bus=cell.bus,
         runtime_running=cell.live.running if cell.live else False,
         **h,

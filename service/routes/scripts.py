@@ -45,13 +45,18 @@ async def put_script(name: str, request: Request, cell: CellDep) -> JSONResponse
     """Create or replace a script from its text (the body). The dialect comes from the
     name's suffix. It compiles now and is swapped in at the next tick; outputs whose formulas
     did not change keep their state. A script that does not compile gets 400 with every
-    error (file:line:column), and the running one stays."""
+    error (file:line:column), and the running one stays. An input that no channel provides
+    is named in ``warnings``."""
     mgr = _manager(cell)
     if not NAME.match(name):
         raise HTTPException(422, detail=[{"loc": ["path", "name"], "type": "value_error",
                                           "msg": "a script name is letters, digits, _ . - and "
                                                  "ends in .fdv, .labels or .ravg"}])
     raw = await request.body()
+    limit = request.app.state.security.max_script_bytes
+    if len(raw) > limit:
+        raise HTTPException(413, detail=f"{name} is {len(raw)} bytes; the limit for a script is "
+                                        f"{limit} bytes (TESTCELL_MAX_SCRIPT)")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
@@ -66,6 +71,9 @@ async def put_script(name: str, request: Request, cell: CellDep) -> JSONResponse
     except ConfigError as exc:
         return JSONResponse(status_code=409, content={"detail": str(exc)})
     body = mgr.describe(block.name) | {"kept_state": kept}
+    body["warnings"] = [f"input {i} is not a channel of this cell (no DBC signal, no block "
+                        f"output): the outputs that read it stay stale until a channel {i} exists"
+                        for i in mgr.unknown_inputs(block.name)]
     return JSONResponse(status_code=200 if existed else 201, content=body)
 
 

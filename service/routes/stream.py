@@ -155,7 +155,9 @@ async def _writer(ws: WebSocket, client: Client) -> None:
             client.sent += 1
 
 
-@router.get("/stream/sse", name="stream as server-sent events")
+@router.get("/stream/sse", name="stream as server-sent events", response_class=StreamingResponse,
+            responses={200: {"content": {"text/event-stream": {}},
+                             "description": "subscribed, snapshot, data and dropped events"}})
 async def stream_sse(
     request: Request,
     channels: Annotated[str, Query(description="comma-separated channel names or glob patterns, "

@@ -13,7 +13,7 @@ import pytest
 import cell.dbc as dbc_mod
 from cell import registry
 from cell.cli import main
-from cell.dbc import CellDatabase, default_dbc_path, load, resolve_dbc_paths
+from cell.dbc import CellDatabase, cell_dbc_paths, default_dbc_path, load, resolve_dbc_paths
 from cell.errors import ConfigError
 from cell.estimators.filters import MovingAverage
 from cell.runtime import Runtime
@@ -72,7 +72,7 @@ def test_a_second_file_in_the_dbc_folder_is_loaded(tmp_path, monkeypatch, clean_
 
 
 def test_registered_dbc_files_are_loaded(tmp_path, clean_registry):
-    own = load().files  # testcell.dbc first, then the rest of dbc/
+    own = cell_dbc_paths()
     assert own[0] == default_dbc_path() and USER not in own
     registry.dbc_file(USER)
     db = load()
@@ -170,7 +170,7 @@ def test_a_collision_between_two_user_files_names_both(tmp_path, clean_registry)
                                           r"and RIG_B in .*b\.dbc"):
         load((a, b))
     # the same file named twice (or the cell's own named again) is not a collision
-    assert load((a, str(a), default_dbc_path())).files == [*load().files, a]
+    assert load((a, str(a), default_dbc_path())).files == [*cell_dbc_paths(), a]
 
 
 def test_a_signal_twice_in_one_file_keeps_its_error(tmp_path):

@@ -92,7 +92,9 @@ def test_undecodable_frames_are_counted_and_ignored(db):
     rt.ingest(can.Message(timestamp=0.03, arbitration_id=0x101, data=b"\x00" * 12,
                           is_extended_id=False, is_fd=True))
     h = rt.health()
-    assert h["decode_errors"] == {"unknown_id": 1, "bad_length": 2, "decode_error": 0}
+    assert h["decode_errors"] == {"unknown_id": 1, "bad_length": 2, "decode_error": 0,
+                                  "remote_frame": 0, "error_frame": 0}
+    assert h["unknown_ids"] == {"0x7AB": 1}
     assert h["frames"] == 4
     assert rt.channels["EXH_BP_L"].value == 500.0
 

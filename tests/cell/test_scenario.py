@@ -46,7 +46,7 @@ def test_a_command_sets_the_given_keys_and_the_start_value_of_the_others(db):
 
 
 @pytest.mark.parametrize("values,field,needle", [
-    ({"osk": 0.5}, "osk", "is not a scenario key; known: fuel_offset_cyl_1, fuel_offset_cyl_2, "
+    ({"osk": 0.5}, "osk", "is not a scenario key; known: engine_reset, fuel_offset_cyl_1, fuel_offset_cyl_2, "
      "fuel_offset_cyl_3, fuel_offset_cyl_4, osc, rig_gain, rig_level, rig_mode"),
     ({"osc": 2.5}, "osc", "must be within [0.05, 2] (the DBC range of OSC in SCENARIO_TWC), got 2.5"),
     ({"osc": 0.01}, "osc", "must be within [0.05, 2]"),
@@ -55,7 +55,7 @@ def test_a_command_sets_the_given_keys_and_the_start_value_of_the_others(db):
     ({"rig_mode": "turbo"}, "rig_mode", "or one of OFF, SLOW, FAST"),
     ({"osc": float("nan")}, "osc", "must be finite"),
     ({"osc": True}, "osc", "must be a number, got bool"),
-    ({}, "body", "names no scenario key; known: fuel_offset_cyl_1"),
+    ({}, "body", "names no scenario key; known: engine_reset, fuel_offset_cyl_1"),
 ])
 def test_bad_commands_are_refused_by_name(db, values, field, needle):
     with pytest.raises(ParamError) as err:
@@ -89,7 +89,7 @@ def test_the_cli_refuses_an_unknown_key_or_a_value_out_of_range(capsys):
     peer = open_bus(channel)
     try:
         assert cli.main(["scenario", "osk=0.5", "--bus", channel]) == 2
-        assert "osk: is not a scenario key; known: fuel_offset_cyl_1" in capsys.readouterr().err
+        assert "osk: is not a scenario key; known: engine_reset, fuel_offset_cyl_1" in capsys.readouterr().err
         assert cli.main(["scenario", "osc=9", "--bus", channel]) == 2
         assert "osc: must be within [0.05, 2]" in capsys.readouterr().err
         assert peer.recv(timeout=0.2) is None  # nothing was sent

@@ -114,3 +114,24 @@ def test_cli_writes_csv_png_jsonl_and_prints_json(small_log, tmp_path, capsys):
 def test_cli_refuses_a_bad_grid_before_reading_the_log(tmp_path):
     with pytest.raises(ConfigError, match="position"):
         run_cli([str(tmp_path / "missing.log"), "--grid", "Q=1:2,R=1"])
+
+
+def test_cli_writes_no_file_unless_asked_and_prints_the_paths(small_log, tmp_path, capsys,
+                                                              monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert run_cli([str(small_log), "--grid", "Q=1e-6,R=1e-4", "--quiet"]) == 0
+    assert list(tmp_path.iterdir()) == []  # nothing in the working directory
+    assert "wrote" not in capsys.readouterr().err
+    out = tmp_path / "res"
+    assert run_cli([str(small_log), "--grid", "Q=1e-6,R=1e-4", "--quiet", "--out-dir", str(out)]) == 0
+    err = capsys.readouterr().err
+    written = sorted(p.name for p in out.iterdir())
+    assert written == ["sweep_EXH_BP_R.csv", "sweep_EXH_BP_R.jsonl", "sweep_EXH_BP_R.png"]
+    for name in written:
+        assert f"wrote {out / name}" in err
+
+
+def test_help_says_json_is_json_lines():
+    parser = argparse.ArgumentParser()
+    sw.add_arguments(parser)
+    assert "JSON Lines" in " ".join(parser.format_help().split())

@@ -1,5 +1,7 @@
 """Hostile scripts get a load error or bounded work: never Python execution or a hang."""
 
+import math
+
 import pytest
 
 from cell.formula import FdvBlock, ScriptError, load_script
@@ -79,3 +81,17 @@ def test_python_names_are_just_channels_and_locals():
 def test_non_string_text_is_refused():
     with pytest.raises(ScriptError, match="must be a string"):
         load_script("x.fdv", b"[formulas]\n")
+
+
+@pytest.mark.parametrize("number", ["1e309", "9" * 5000, "1" + "0" * 400])
+def test_huge_constants_are_a_load_error_at_their_position(number):
+    with pytest.raises(ScriptError, match=r"h\.fdv:3:5: number .* is too large"):
+        load_script("h.fdv", F + "y = " + number + "\n")
+
+
+@pytest.mark.parametrize("expr", ["1e308 * 10", "pow(10, 400)", "exp(1e6)", "-1e308 * 1e10",
+                                  "1e308 + 1e308", "sqrt(-1)", "log(0)"])
+def test_overflow_at_run_time_marks_the_output_invalid_never_raises(expr):
+    block = load_script("h.fdv", F + "y = " + expr + "\n")
+    out = block.step(0.0, {})
+    assert math.isnan(out["y"]) and "y" in block.errors, (out, block.errors)

@@ -1,0 +1,127 @@
+"""Defects found when the cell was tried as a new user would: each one stays fixed.
+
+- a script reading an input that no channel provides is accepted with the input named;
+- a deleted script's errors leave ``/health`` with it;
+- ``/health`` turns ``degraded`` (with the reason) when the bus falls silent;
+- a trip shows in ``/health`` with its reason, and ``POST /engine/reset`` (or a scenario
+  frame of the same ENGINE_RESET signal) resets it, in a simulator fed through the bus frames.
+"""
+
+import math
+
+import can
+from fastapi.testclient import TestClient
+
+from cell import registry
+from cell.context import Cell
+from cell.estimators.filters import native_filters
+from cell.plant import TRIPPED
+from cell.runtime import Runtime
+from cell.scripting import ScriptManager
+from cell.settings import Settings
+from cell.sim import build as build_sim
+from cell.tuning import TuningStore
+from service.main import create_app
+
+
+def feed(rt, db, t0, t1):
+    t = t0
+    while t < t1 - 1e-9:
+        rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 600.0, "EXH_BP_R": 600.0 + 10 * math.sin(t)}, t))
+        t = round(t + 0.01, 6)
+    rt.advance(t1 - 0.01)
+
+
+def make(db, tmp_path):
+    rt = Runtime(db, native_filters())
+    store = TuningStore(tmp_path / "tuning.json")
+    mgr = ScriptManager(rt, store)
+    return rt, mgr, TestClient(create_app(Cell(runtime=rt, tuning=store, extra={"scripts": mgr})))
+
+
+def test_script_reading_an_unknown_input_is_accepted_with_the_input_named(db, tmp_path):
+    rt, mgr, c = make(db, tmp_path)
+    r = c.put("/scripts/typo.fdv", content="[formulas]\npublic Y\nY = EXH_BP_RR * 2 + EXH_BP_R\n")
+    assert r.status_code == 201
+    warnings = r.json()["warnings"]
+    assert len(warnings) == 1 and "EXH_BP_RR" in warnings[0], warnings
+    ok = c.put("/scripts/fine.fdv", content="[formulas]\npublic Z\nZ = EXH_BP_R_Kalman + 1\n")
+    assert ok.status_code == 201 and ok.json()["warnings"] == []
+
+
+def test_block_errors_leave_health_with_the_deleted_script(db, tmp_path):
+    rt, mgr, c = make(db, tmp_path)
+    assert c.put("/scripts/div.fdv", content="[formulas]\npublic D\nD = 1 / (EXH_BP_L - 600)\n"
+                 ).status_code == 201
+    feed(rt, db, 0.0, 2.0)
+    assert c.get("/health").json()["block_errors"].get("div.fdv", 0) > 0
+    assert c.delete("/scripts/div.fdv").status_code == 204
+    assert "div.fdv" not in c.get("/health").json()["block_errors"]
+    feed(rt, db, 2.0, 3.0)
+    assert "div.fdv" not in c.get("/health").json()["block_errors"]
+
+
+def test_health_is_degraded_with_the_reason_when_the_bus_falls_silent(db, tmp_path):
+    rt, mgr, c = make(db, tmp_path)
+    h = c.get("/health").json()
+    assert h["status"] == "waiting"
+    feed(rt, db, 0.0, 5.0)
+    h = c.get("/health").json()
+    assert h["status"] == "ok" and h["reasons"] == [] and h["frames_per_s"] > 0
+    rt.advance(8.0)  # a live cell advances bus time on a silent bus
+    h = c.get("/health").json()
+    assert h["frames_per_s"] == 0.0 and h["status"] == "degraded"
+    assert any("bus silent" in r for r in h["reasons"]), h["reasons"]
+    feed(rt, db, 8.0, 10.0)
+    assert c.get("/health").json()["status"] == "ok"
+
+
+def test_trip_is_shown_and_reset_over_http_and_by_scenario_frame(db, tmp_path):
+    """The simulator and runtime exchange frames only (as on the bus); the valve is shut so
+    the back-pressure trips the engine; /health shows it; POST /engine/reset clears it."""
+    settings = Settings.build({"engine": "large-diesel", "duty": "rated", "valve": 5.0,
+                               "bp_limit": 250.0},
+                              environ={}).for_simulator()
+    sim = build_sim(settings, db)
+    rt = Runtime(db, native_filters())
+    c = TestClient(create_app(Cell(runtime=rt, extra={})))
+
+    def run(seconds):
+        for _ in range(round(seconds / sim.dt)):
+            for msg in sim.frames():
+                rt.ingest(msg)
+            for msg in rt.take_outbox():
+                sim.receive(msg)
+            sim.step()
+
+    run(5.0)
+    h = c.get("/health").json()
+    assert h["trip"] == {"state": "TRIPPED", "reason": "EXH_BP_LIMIT", "since": h["trip"]["since"]}
+    assert h["status"] == "degraded" and any("engine tripped: EXH_BP_LIMIT" in r for r in h["reasons"])
+    exhaust = sim.plant.plant("exhaust")
+    assert exhaust.state == TRIPPED
+    # the valve opens (a demand frame, as a controller or an operator would send), then reset
+    sim.receive(db.encode("VALVE_DEMAND", {"VALVE_DEMAND_L": 100.0, "VALVE_DEMAND_R": 100.0}))
+    run(10.0)
+    assert c.get("/health").json()["trip"] is not None  # a trip holds until reset
+    r = c.post("/engine/reset")
+    assert r.status_code == 200 and r.json()["sent"] == {"ENGINE_RESET": 1}
+    run(2.0)
+    h = c.get("/health").json()
+    assert h["trip"] is None and h["status"] == "ok", h
+    assert exhaust.state != TRIPPED and rt.channels["ENGINE_STATE"].value == 1
+    # trip again, then reset with a scenario frame (what `testcell scenario engine_reset=N` sends)
+    sim.receive(db.encode("VALVE_DEMAND", {"VALVE_DEMAND_L": 5.0, "VALVE_DEMAND_R": 5.0}))
+    run(20.0)
+    assert c.get("/health").json()["trip"] is not None
+    sim.receive(db.encode("VALVE_DEMAND", {"VALVE_DEMAND_L": 100.0, "VALVE_DEMAND_R": 100.0}))
+    run(10.0)
+    scenario = db.encode("ENGINE_CMD", {"ENGINE_RESET": 7}, rt.now)
+    sim.receive(scenario)
+    rt.ingest(can.Message(timestamp=rt.now, arbitration_id=scenario.arbitration_id,
+                          data=scenario.data, is_extended_id=False))
+    run(2.0)
+    assert c.get("/health").json()["trip"] is None
+    # the next HTTP reset continues from the counter seen on the bus, so it is a new value
+    assert c.post("/engine/reset").json()["sent"] == {"ENGINE_RESET": 8}
+    assert registry  # the engine profile came from the registry

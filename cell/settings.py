@@ -46,8 +46,15 @@ class Option:
     help: str = ""
     metavar: str | None = None
     check: Callable[[Any], str | None] | None = None
+    switch: bool = False
+    """A flag without a value (``--no-pem-sensor``): true when given; ``type`` then reads
+    its ``TESTCELL_<KEY>`` value (use :func:`parse_bool`)."""
 
     def add_to(self, parser: argparse.ArgumentParser, note: str = "") -> None:
+        if self.switch:
+            parser.add_argument(self.flag, dest=self.key, action="store_true", default=None,
+                                help=self.help + note)
+            return
         parser.add_argument(self.flag, dest=self.key, type=self.type, default=None,
                             metavar=self.metavar, help=self.help + note)
 
@@ -107,6 +114,10 @@ def _bool(text: str) -> bool:
     if t in ("0", "false", "no", "off", ""):
         return False
     raise ValueError(f"not a yes/no value: {text!r}")
+
+
+#: Reads a yes/no setting (``1/0``, ``true/false``, ``yes/no``, ``on/off``).
+parse_bool = _bool
 
 
 def _words(text: str) -> tuple[str, ...]:
@@ -254,8 +265,11 @@ class Settings:
                 argv += [opt.flag, str(value)]
         eng = engine_options()
         for key, value in s.plant.items():
-            if value is not None:
-                argv += [eng[key][0].flag, str(value)]
+            opt = eng[key][0]
+            if opt.switch:
+                argv += [opt.flag] if value else []
+            elif value is not None:
+                argv += [opt.flag, str(value)]
         for path in s.dbc:
             argv += ["--dbc", path]
         return argv

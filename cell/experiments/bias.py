@@ -1,0 +1,401 @@
+"""Seed 002 on the cell: ``testcell design bias LOG`` and ``testcell experiment bias``.
+
+The design tool (seed 002, §4.2, Approach 2 by default)
+-------------------------------------------------------
+``testcell design bias LOG [--states P_IM,P_EM,N_T] [--approach 2] [--out FILE]`` replays a
+large-diesel log through the *default observer* of :mod:`cell.estimators.diesel_observers`
+measuring ``--states`` (by default every air-path state with a sensor in the log: with
+``P_EM`` on the bus, all three, as seed 002, §6.2 does), finds the stationary segments
+automatically from engine speed and fuel (:func:`cell.estimators.bias.stationary_segments`),
+takes the SVD of the stationary residuals, chooses dim q by
+:data:`~cell.estimators.bias.DIM_RATIO` (at most the run-time sensors, P_IM and N_T) and
+estimates :math:`\\hat A_q` by eq. 9. The augmentation must pass the PBH test (Theorem 2)
+with the *run-time* sensors; then the file is written (JSON: ``Aq``, ``singular_values``,
+the segments...), for the runtime to load (setting ``bias_design``). A log without
+stationary segments, or without the air path's signals, is refused and nothing is written.
+
+The experiment
+--------------
+1. The simulation study of §6.1 (:func:`simulation_study`): a third-order linear system
+   with true :math:`A_q = [[1,-2],[2,1],[0,0]]`, two slowly varying biases and an extra
+   sensor on :math:`x_2`; prints :math:`S_r`, :math:`\\hat A_q` and the largest principal
+   angle between their spans, and draws Figures 1-2.
+2. The diesel on ``etc`` (:func:`diesel_study`): a design run with the ``P_EM`` sensor, then
+   an evaluation run without it (``--no-pem-sensor``), both observers side by side, errors
+   scored against simulator truth (the paper had to use non-causal low-pass filtered
+   measurements); Figures 3-4 and a table like Table 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import dbc as dbc_mod
+from .. import registry
+from ..errors import ConfigError
+from ..estimators import bias
+from ..estimators.core import KalmanCore, steady_state_gain
+from ..estimators.diesel_observers import (
+    OUTPUTS, RUNTIME_SENSORS, STEP, augmented_observer, default_observer, default_model,
+    runtime_C,
+)
+from ..lockstep import Lockstep, feed
+from ..plant.diesel_airpath import INPUTS, STATES
+from ..plant.profiles import large_diesel
+from ..runtime import Rates, Runtime
+from ..sim.simulator import Simulator
+
+#: Stationarity of the operating point (design): range over the window of engine speed
+#: (rpm) and fuel (L/h), the window and the settling time dropped from each segment, s.
+SPEED_TOL, FUEL_TOL, WINDOW, SETTLE, MIN_LENGTH = 10.0, 4.0, 4.0, 14.0, 8.0
+#: Scoring starts after the observers' initial transient, s.
+SCORE_FROM = 20.0
+
+
+# -- §6.1: the simulation study --------------------------------------------------------------
+#: The §6.1 system: continuous A (stable, invertible), B, and the true augmentation.
+STUDY_A = np.array([[-3.0, 1.0, 0.5], [2.0, -6.0, 1.0], [0.5, 1.5, -1.0]])
+STUDY_B = np.array([[3.0, 0.0], [0.0, 4.0], [1.0, 1.0]])
+STUDY_AQ = np.array([[1.0, -2.0], [2.0, 1.0], [0.0, 0.0]])
+STUDY_LEVELS = ((40, 30), (60, 20), (30, 60), (70, 50), (50, 40), (80, 70), (35, 45), (65, 35))
+
+
+def simulation_study(seed: int = 0, duration: float = 600.0, ts: float = 0.01,
+                     sensors: Sequence[int] = (0, 1, 2)) -> dict[str, Any]:
+    """Seed 002, §6.1, on a linear third-order system; returns numbers and traces.
+
+    The true system is the Euler-discretised eq. 4 with :data:`STUDY_AQ` and two slowly
+    varying biases (:math:`A_q q` 0-10 % of the states), white process and measurement
+    noise, and piecewise-constant inputs (eight holds: the stationary operating points).
+    The default Kalman filter (the model without bias) runs on ``sensors`` (default all
+    three: ``y_1 = x_1``, ``y_2 = x_3`` and the extra sensor on ``x_2``); Approach 2 gives
+    :math:`\\hat A_q`; the augmented filter (eq. 4 with :math:`\\hat A_q`) is compared.
+    """
+    rng = np.random.default_rng([seed, 61])
+    n_steps = int(round(duration / ts))
+    t = np.arange(n_steps) * ts
+    F = np.eye(3) + ts * STUDY_A
+    Bd = ts * STUDY_B
+    hold = duration / len(STUDY_LEVELS)
+    u = np.array([STUDY_LEVELS[min(int(tt // hold), len(STUDY_LEVELS) - 1)] for tt in t], float)
+    q = np.column_stack([4.0 + 3.0 * np.sin(2 * np.pi * t / 400.0),
+                         2.0 + 2.0 * np.sin(2 * np.pi * t / 250.0 + 1.0)])
+    C = np.eye(3)[list(sensors)]
+    x = np.linalg.solve(-STUDY_A, STUDY_B @ u[0])
+    X, Y = np.zeros((n_steps, 3)), np.zeros((n_steps, len(sensors)))
+    w_std, v_std = 0.02, 0.5
+    for k in range(n_steps):
+        X[k] = x
+        Y[k] = C @ x + rng.normal(0.0, v_std, len(sensors))
+        x = F @ x + (np.eye(3) - F) @ STUDY_AQ @ q[k] + Bd @ u[k] + rng.normal(0.0, w_std, 3)
+    Qf, Rf = np.eye(3) * 1e-3, np.eye(len(sensors)) * v_std ** 2
+    x0 = np.linalg.pinv(C) @ Y[0]
+
+    def run(Fm, Bm, Cm, Q, x_init) -> np.ndarray:
+        kf = KalmanCore(x_init, np.eye(len(x_init)), Q, Rf, F=Fm, B=Bm, H=Cm)
+        out = np.zeros((n_steps, len(x_init)))
+        for k in range(n_steps):
+            if k:
+                kf.predict(u[k - 1])
+            kf.update(Y[k])
+            out[k] = kf.x
+        return out
+
+    Xd = run(F, Bd, C, Qf, x0)
+    r = Y - Xd @ C.T  # eq. 8
+    segments = bias.stationary_segments(t, u, [1e-9, 1e-9], window=1.0, settle=20.0,
+                                        min_length=10.0)
+    mask = bias.segment_mask(t, segments)
+    K, _ = steady_state_gain(F, C, Qf, Rf)
+    design = bias.approach2(r[mask], bias.stationary_map(F, K, C), segments=segments,
+                            max_dim=len(sensors))
+    bias.pbh_check(C, design.Aq)
+    Fa, Ba, Ca = bias.augmented_linear(F, Bd, C, design.Aq)
+    Qa = np.diag([*np.diag(Qf), *[1e-4] * design.n_q])
+    Xa = run(Fa, Ba, Ca, Qa, np.concatenate([x0, np.zeros(design.n_q)]))[:, :3]
+    score = t >= 20.0
+    e_def, e_aug = (Xd - X)[score], (Xa - X)[score]
+    return {
+        "S_r": design.singular_values.tolist(),
+        "n_q": design.n_q,
+        "Aq_hat": design.Aq.tolist(),
+        "Aq_true": STUDY_AQ.tolist(),
+        "largest_angle_deg": bias.largest_angle_deg(design.Aq, STUDY_AQ),
+        "segments": [list(s) for s in segments],
+        "mean_abs_error_default": np.abs(e_def).mean(axis=0).tolist(),
+        "mean_abs_error_augmented": np.abs(e_aug).mean(axis=0).tolist(),
+        "_traces": {"t": t, "x": X, "default": Xd, "augmented": Xa},
+    }
+
+
+# -- the diesel: records of a run ----------------------------------------------------------
+@dataclass
+class Record:
+    """Per-tick values of a run (MED ticks): time, and named columns."""
+
+    t: np.ndarray
+    cols: dict[str, np.ndarray]
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.cols[name]
+
+
+class _Recorder:
+    def __init__(self, rt: Runtime, names: Sequence[str], extra: Callable[[], dict] | None = None
+                 ) -> None:
+        self.rt, self.names, self.extra = rt, list(names), extra
+        self.rows: list[list[float]] = []
+        self.t: list[float] = []
+        self.more: list[dict] = []
+
+    def __call__(self, t: float) -> None:
+        ch = self.rt.channels
+        row = []
+        for n in self.names:
+            c = ch.get(n)
+            v = c.value if c is not None and c.status == "ok" else None
+            row.append(np.nan if v is None else float(v))
+        self.t.append(t)
+        self.rows.append(row)
+        if self.extra is not None:
+            self.more.append(self.extra())
+
+    def record(self) -> Record:
+        a = np.array(self.rows, dtype=float).reshape(len(self.t), len(self.names))
+        return Record(np.array(self.t), {n: a[:, i] for i, n in enumerate(self.names)})
+
+
+def _progress(total: float, desc: str, progress: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=round(total), unit="s", desc=desc, disable=not progress)
+
+
+# -- the design -------------------------------------------------------------------------------
+def _read_log(path: Path):
+    from ..replay import read_log
+
+    return read_log(path)
+
+
+def design_from_frames(frames, states: Sequence[str] | None = None, approach: int = 2,
+                       runtime_sensors: Sequence[str] = RUNTIME_SENSORS, source: str = "log",
+                       n_q: int | None = None, progress: bool = False) -> dict[str, Any]:
+    """Estimate :math:`\\hat A_q` from the frames of a large-diesel run (seed 002, §4).
+
+    ``states``: the sensors the design observer uses (default: those present). Raises
+    :class:`ConfigError` naming what is missing, or when there is no stationary segment.
+    """
+    db = dbc_mod.load()
+    frames = list(frames)
+    present = _present_signals(db, frames)
+    needed = [*INPUTS]
+    missing = [s for s in needed if s not in present]
+    if missing:
+        raise ConfigError(f"{source}: no values of {', '.join(missing)}: the design needs the "
+                          "large-diesel air path's inputs (a log of `testcell sim --engine "
+                          "large-diesel`)")
+    if states is None:
+        states = [s for s in OUTPUTS if s in present]
+    states = list(states)
+    bad = [s for s in states if s not in OUTPUTS]
+    if bad:
+        raise ConfigError(f"--states: {', '.join(bad)} is not an air-path state; choose from "
+                          f"{', '.join(OUTPUTS)}")
+    absent = [s for s in states if s not in present]
+    if absent or not states:
+        raise ConfigError(f"{source}: no values of {', '.join(absent) or 'any air-path sensor'} "
+                          f"(the sensors of --states {','.join(states) or '(none)'})")
+    obs = default_observer("bias-design", sensors=states, channels={}, rate="FAS")
+    if approach == 3:
+        obs = augmented_observer(bias.max_augmentation(np.eye(3)[[OUTPUTS.index(s) for s in states]]),
+                                 "bias-design", sensors=states, channels={})
+    rt = Runtime(db, [obs], Rates())
+    x_names = list(obs._x_out)
+    names = [*INPUTS, *states, *x_names]
+    rec = _Recorder(rt, names, extra=lambda: {"K": obs.core.K.copy()})
+    fed = feed(rt, frames, rec)
+    if fed.error is not None:
+        raise ConfigError(f"{source}: {fed.error}")
+    r = rec.record()
+    if len(r.t) < 10:
+        raise ConfigError(f"{source}: too short ({len(r.t)} ticks) for a design")
+    drive = np.column_stack([r["ENGINE_SPEED"], r["FUEL_RATE"]])
+    ok = np.isfinite(drive).all(axis=1) & np.isfinite(np.column_stack([r[n] for n in names])).all(axis=1)
+    segments = bias.stationary_segments(r.t[ok], drive[ok], [SPEED_TOL, FUEL_TOL], WINDOW,
+                                        SETTLE, MIN_LENGTH)
+    if not segments:
+        raise ConfigError(f"{source}: no stationary segment (engine speed within {SPEED_TOL:g} rpm "
+                          f"and fuel within {FUEL_TOL:g} L/h for {SETTLE + MIN_LENGTH:g} s); the "
+                          "design needs stationary operating points (e.g. --duty etc); nothing "
+                          "written")
+    mask = ok & bias.segment_mask(r.t, segments)
+    model = default_model()
+    C = np.eye(3)[[OUTPUTS.index(s) for s in states]]
+    xs = np.column_stack([r[n] for n in x_names])
+    us = np.column_stack([r[n] for n in INPUTS])
+    ys = np.column_stack([r[s] for s in states])
+    dt = 1.0 / Rates().FAS
+    seg_of = np.full(len(r.t), -1)
+    for k, (a, b) in enumerate(segments):
+        seg_of[(r.t >= a) & (r.t <= b)] = k
+    maps, weights = [], []
+    for k in range(len(segments)):
+        idx = np.flatnonzero(mask & (seg_of == k))
+        if len(idx) == 0:
+            continue
+        x_m, u_m = xs[idx].mean(axis=0), us[idx].mean(axis=0)
+        _, F = model.step(0.0, x_m[:3], u_m, dt, jacobian=True)
+        K = rec.more[idx[-1]]["K"][:3] if approach != 3 else None
+        if K is not None:
+            Cs = C * np.array([1.0, 1.0, 1000.0])[None, :]  # h's Jacobian (N_T in rpm)
+            maps.append(bias.stationary_map(F, K, Cs) / np.array(
+                [1000.0 if s == "N_T" else 1.0 for s in states])[:, None])
+            weights.append(len(idx))
+    max_dim = len(runtime_sensors)
+    if approach == 2:
+        scale = np.array([1000.0 if s == "N_T" else 1.0 for s in states])
+        resid = ys[mask] / scale - (xs[mask][:, :3] @ C.T)
+        design = bias.approach2(resid, maps, weights, n_q=n_q, max_dim=max_dim, segments=segments)
+    elif approach == 1:
+        if len(states) < 3:
+            raise ConfigError("--approach 1 needs every state measured (C of full column rank): "
+                              "use a log with P_EM and --states P_IM,P_EM,N_T")
+        scale = np.array([1.0, 1.0, 1000.0])
+        idx = np.flatnonzero(mask)
+        idx = idx[idx + 1 < len(r.t)]
+        idx = idx[mask[idx + 1]]
+        X1 = ys[idx + 1] / scale
+        P, Fs = [], []
+        for i in idx:
+            x_i = ys[i] / scale
+            dti = r.t[i + 1] - r.t[i]
+            xn, Fk = model.step(0.0, x_i, us[i], dti, jacobian=True)
+            P.append(xn)
+            Fs.append(Fk)
+        design = bias.approach1(X1, np.array(P), Fs, seg_of[idx], n_q=n_q, max_dim=max_dim,
+                                segments=segments)
+    elif approach == 3:
+        qs = xs[mask][:, 3:]
+        design = bias.approach3(qs, bias.max_augmentation(C), n_q=n_q, max_dim=max_dim,
+                                segments=segments)
+    else:
+        raise ConfigError(f"--approach must be 1, 2 or 3, got {approach}")
+    try:
+        bias.pbh_check(runtime_C(runtime_sensors), design.Aq, STATES, runtime_sensors)
+    except bias.AugmentationError as exc:
+        raise ConfigError(f"{source}: the estimated A_q cannot be used with the run-time sensors "
+                          f"{', '.join(runtime_sensors)}: {exc}") from None
+    out = design.as_dict(STATES)
+    out.update({"design_sensors": states, "runtime_sensors": list(runtime_sensors),
+                "source": str(source),
+                "rule": f"n_q = number of singular values >= {bias.DIM_RATIO:g} x the largest, "
+                        f"at most {max_dim} (the run-time sensors)"})
+    return out
+
+
+def _present_signals(db, frames) -> set[str]:
+    out: set[str] = set()
+    ids = {(m.arbitration_id, bool(m.is_extended_id)) for m in frames}
+    for m in db.messages:
+        if (m.frame_id, m.is_extended_frame) in ids:
+            out.update(s.name for s in m.signals)
+    return out
+
+
+def write_design(path: Path, design: dict[str, Any]) -> Path:
+    """Write a design file atomically (nothing is left behind on failure)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(design, f, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+# -- the diesel: evaluation ---------------------------------------------------------------------
+EVAL_NAMES = ("P_IM_TRUE", "P_EM_TRUE", "N_T_TRUE", "P_IM_EST_DEFAULT", "P_EM_EST_DEFAULT",
+              "N_T_EST_DEFAULT", "P_IM_EST", "P_EM_EST", "N_T_EST", "P_IM", "N_T",
+              "ENGINE_SPEED", "FUEL_RATE", "EXH_BP_L_TRUE")
+
+
+def evaluate(Aq: np.ndarray, duration: float, seed: int = 1, duty: str = "etc",
+             valve_steps: Sequence[tuple[float, float]] = (), progress: bool = False,
+             initial_valve: float | None = None) -> Record:
+    """Run the engine without the P_EM sensor and both observers in lockstep; record.
+
+    ``valve_steps``: ``(t, opening %)`` demands sent to both back-pressure valves.
+    """
+    db = dbc_mod.load()
+    plant = large_diesel(duty, seed, initial_valve=initial_valve, pem_sensor=False)
+    sim = Simulator(plant, db)
+    obs = [default_observer(), augmented_observer(Aq)]
+    rt = Runtime(db, obs, Rates())
+    nq = np.asarray(Aq).reshape(3, -1).shape[1]
+    rec = _Recorder(rt, [*EVAL_NAMES, *[f"Q_BIAS_{i + 1}" for i in range(nq)]])
+    steps = sorted(valve_steps)
+    per_s = round(1.0 / sim.dt)
+    with _progress(duration, f"bias {duty}", progress) as bar:
+        for k, _ in Lockstep(sim, rt, stride=2, on_tick=rec).steps(round(duration / sim.dt)):
+            while steps and sim.t >= steps[0][0] - 1e-9:
+                _, v = steps.pop(0)
+                plant.set_input("VALVE_DEMAND_L", v)
+                plant.set_input("VALVE_DEMAND_R", v)
+            if (k + 1) % per_s == 0:
+                bar.update(1)
+    return rec.record()
+
+
+def error_table(r: Record, start: float = SCORE_FROM) -> dict[str, dict[str, float]]:
+    """Table 1 of seed 002: max-abs and mean error per state, default and augmented,
+    against simulator truth (N_T in rpm)."""
+    sel = r.t >= start
+    out = {}
+    for s, scale in (("P_IM", 1.0), ("P_EM", 1.0), ("N_T", 1000.0)):
+        truth = r[f"{s}_TRUE"][sel]
+        row = {}
+        for label, ch in (("default", f"{s}_EST_DEFAULT"), ("augmented", f"{s}_EST")):
+            e = r[ch][sel] * scale - truth
+            e = e[np.isfinite(e)]
+            row[f"max_abs_{label}"] = float(np.max(np.abs(e)))
+            row[f"mean_{label}"] = float(np.mean(e))
+        out[s] = row
+    return out
+
+
+def mean_error_reduction(table: dict[str, dict[str, float]], state: str = "P_EM") -> float:
+    """1 - |mean error augmented| / |mean error default| (seed 002, §6.2: about 0.5)."""
+    row = table[state]
+    return 1.0 - abs(row["mean_augmented"]) / abs(row["mean_default"])
+
+
+def diesel_study(design_seconds: float = 1800.0, eval_seconds: float = 1800.0,
+                 design_seed: int = 0, eval_seed: int = 1, progress: bool = True,
+                 log_dir: Path | None = None) -> dict[str, Any]:
+    """Design on an ``etc`` run with the P_EM sensor, evaluate on one without it."""
+    from ..sim import write_log
+
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(log_dir or tmp) / "etc_design.log"
+        write_log(log, "etc", seed=design_seed, duration=design_seconds, progress=progress)
+        design = design_from_frames(_read_log(log), source=str(log))
+    Aq = np.array(design["Aq"])
+    rec = evaluate(Aq, eval_seconds, eval_seed, progress=progress)
+    table = error_table(rec)
+    return {"design": design, "table": table,
+            "mean_error_reduction": mean_error_reduction(table), "_record": rec}

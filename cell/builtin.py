@@ -5,6 +5,8 @@ from __future__ import annotations
 from . import registry
 from .controller import controllers
 from .estimators.adaptive import adaptive_filters
+from .estimators.diesel_observers import airpath_observers
+from .experiments.bias import BIAS, BIAS_DESIGN
 from .estimators.filters import native_filters
 from .experiments.closed_loop import CLOSED_LOOP
 from .plant.profiles import LARGE_DIESEL
@@ -29,6 +31,11 @@ registry.block_set(BlockSet("seed004-filters", lambda s: [*native_filters(), *ad
 registry.block_set(BlockSet("seed004-controllers",
                             lambda s: [] if s.no_controllers else controllers("kalman"),
                             engines=("large-diesel",)))
+# seed 002: the default and the bias-augmented air-path observers side by side
+registry.block_set(BlockSet("seed002-airpath", lambda s: airpath_observers(s.bias_design),
+                            engines=("large-diesel",)))
 
-# experiments
+# experiments and design tools
 registry.experiment(CLOSED_LOOP)
+registry.experiment(BIAS)
+registry.design(BIAS_DESIGN)

@@ -127,6 +127,7 @@ def _words(text: str) -> tuple[str, ...]:
 #: How a ``TESTCELL_<KEY>`` value is read (others are text).
 _ENV_PARSERS: dict[str, Callable[[str], Any]] = {
     "seed": int, "speed": float, "duration": float, "port": int, "state": Path,
+    "bias_design": Path,
     "native": _bool, "no_controllers": _bool, "no_sim": _bool,
     "dbc": _words, "scripts": _words, "plugins": _words,
 }
@@ -154,6 +155,9 @@ class Settings:
     scripts: tuple[str, ...] = ()
     native: bool = False
     no_controllers: bool = False
+    bias_design: Path | None = None
+    """Design file of the large diesel's augmented observer (``testcell design bias``);
+    ``None``: the design shipped with the cell (seed 002)."""
     # -- the service --------------------------------------------------------------------
     host: str = "127.0.0.1"
     port: int = 8000

@@ -27,7 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..plant.diesel_airpath import INPUTS, STATES, UNITS, AirPathParams, airpath_rhs
+from ..plant.diesel_airpath import (
+    INPUTS, STATES, UNITS, AirPathParams, airpath_jacobian, airpath_rhs,
+)
 from .bias import AugmentationError, augment, pbh_check
 from .core import Model
 from .observer import ObserverBlock
@@ -46,7 +48,7 @@ R_DIAG = {"P_IM": 0.8 ** 2, "P_EM": 4.0 ** 2, "N_T": 100.0 ** 2}
 #: Process noise variance per tick of the model states (kPa², kPa², krpm²) and of a bias
 #: state (slowly varying, §2: a random walk).
 Q_STATES = (0.05, 0.5, 1e-4)
-Q_BIAS = 2e-4
+Q_BIAS = 1e-3
 X0 = (101.3, 105.0, 5.0)
 
 
@@ -60,7 +62,7 @@ def _H(t, x, u, p):
 
 def default_model(params: AirPathParams | None = None) -> Model:
     """Seed 002's default model (eq. 1) of the air path, on the estimator core."""
-    return Model(STATES, INPUTS, OUTPUTS, airpath_rhs, _h, H=_H,
+    return Model(STATES, INPUTS, OUTPUTS, airpath_rhs, _h, F=airpath_jacobian, H=_H,
                  params=params or AirPathParams(), dt=0.0, method="euler", max_step=STEP,
                  units={**UNITS, "N_T": "krpm"})
 

@@ -162,10 +162,11 @@ NO_BIAS = Biases(1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0)
 
 def _flows(x, u, p: AirPathParams) -> tuple[float, ...]:
     """Flows, temperatures and powers at state ``x`` and input ``u`` (SI units)."""
-    p_im = x[0] * 1e3
-    p_em = x[1] * 1e3
-    omega = max(x[2], 0.0) * RADS_PER_KRPM
-    fuel_lph, speed, vgt, egr, bp_l, bp_r = u
+    x0, x1, x2 = (float(v) for v in x[:3])
+    p_im = x0 * 1e3
+    p_em = x1 * 1e3
+    omega = max(x2, 0.0) * RADS_PER_KRPM
+    fuel_lph, speed, vgt, egr, bp_l, bp_r = (float(v) for v in u)
     w_f = max(fuel_lph, 0.0) * p.fuel_density / 3600.0
     p_es = p.p_amb + 0.5 * (bp_l + bp_r) * PA_PER_MMH2O
     w_ei = cylinder_flow(p.eta_vol, max(p_im, 0.0), p.t_im, max(speed, 0.0), p.displacement)
@@ -198,6 +199,19 @@ def airpath_rhs(t: float, x, u, p: AirPathParams) -> np.ndarray:
         pressure_derivative(R_EXH, t_em, p.v_em, w_ei + w_f, w_t + w_egr) * 1e-3,
         shaft_acceleration(pt, pc, p.inertia, omega) / RADS_PER_KRPM,
     ])
+
+
+def airpath_jacobian(t: float, x, u, p: AirPathParams) -> np.ndarray:
+    """:math:`A = \\partial f/\\partial x` by forward differences (steps of 1e-4 kPa and
+    1e-5 krpm): three evaluations of :func:`airpath_rhs`, cheap enough for 100 Hz."""
+    x = np.asarray(x, dtype=float)[:3]
+    f0 = airpath_rhs(t, x, u, p)
+    out = np.empty((3, 3))
+    for j, h in enumerate((1e-4, 1e-4, 1e-5)):
+        xh = x.copy()
+        xh[j] += h
+        out[:, j] = (airpath_rhs(t, xh, u, p) - f0) / h
+    return out
 
 
 def airpath_output(t: float, x, u, p: AirPathParams) -> np.ndarray:

@@ -35,6 +35,13 @@ from .core import Model, numerical_jacobian
 DIM_RATIO = 0.1
 
 
+#: Largest condition number of :math:`C \hat A_q` (run-time sensors) accepted when choosing
+#: dim q: Theorem 2 asks for full column rank; a nearly dependent column makes its bias state
+#: nearly unobservable in practice (its variance barely shrinks, the filter trades it
+#: against the others), so dim q is reduced until the condition number is below this.
+MAX_COND = 20.0
+
+
 class AugmentationError(ValueError):
     """An augmentation that the PBH test refuses, or data the estimation cannot use."""
 
@@ -105,8 +112,8 @@ def pbh_rank(F: np.ndarray, C: np.ndarray, Aq: np.ndarray, tol: float = 1e-9) ->
     Fa, _, Ca = augmented_linear(F, None, C, Aq)
     n = Fa.shape[0]
     for lam in np.linalg.eigvals(Fa):
-        O = np.vstack([Ca.astype(complex), Fa - lam * np.eye(n)])
-        if np.linalg.matrix_rank(O, tol=tol * max(1.0, np.abs(O).max())) < n:
+        obs = np.vstack([Ca.astype(complex), Fa - lam * np.eye(n)])
+        if np.linalg.matrix_rank(obs, tol=tol * max(1.0, np.abs(obs).max())) < n:
             return False
     return True
 
@@ -186,6 +193,20 @@ def choose_dim(s: np.ndarray, ratio: float = DIM_RATIO, max_dim: int | None = No
         return 0
     n = int(np.sum(s >= ratio * s[0]))
     return min(n, max_dim) if max_dim is not None else n
+
+
+def observable_dim(C: np.ndarray, Aq: np.ndarray, max_cond: float = MAX_COND) -> int:
+    """The largest ``k`` such that the first ``k`` columns of ``Aq`` pass Theorem 2 with a
+    margin: :math:`C A_q[:, :k]` of full column rank with condition number <= ``max_cond``."""
+    C = np.atleast_2d(np.asarray(C, dtype=float))
+    Aq = np.asarray(Aq, dtype=float).reshape(C.shape[1], -1)
+    k = 0
+    for j in range(1, Aq.shape[1] + 1):
+        s = np.linalg.svd(C @ Aq[:, :j], compute_uv=False)
+        if j > C.shape[0] or not s[-1] > 0 or s[0] / s[-1] > max_cond:
+            break
+        k = j
+    return k
 
 
 def stationary_map(F: np.ndarray, K: np.ndarray, C: np.ndarray) -> np.ndarray:
@@ -387,6 +408,6 @@ def augment(model: Model, Aq: np.ndarray, prefix: str = "Q_BIAS_") -> Model:
                  dt=model.dt, method=model.method, max_step=model.max_step, units=model.units)
 
 
-__all__ = ["DIM_RATIO", "AugmentationError", "BiasDesign", "approach1", "approach2", "approach3",
+__all__ = ["DIM_RATIO", "MAX_COND", "AugmentationError", "observable_dim", "BiasDesign", "approach1", "approach2", "approach3",
            "augment", "augmented_linear", "choose_dim", "largest_angle_deg", "max_augmentation",
            "pbh_check", "pbh_rank", "segment_mask", "stationary_map", "stationary_segments"]

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -46,7 +45,7 @@ from ..errors import ConfigError
 from ..estimators import bias
 from ..estimators.core import KalmanCore, steady_state_gain
 from ..estimators.diesel_observers import (
-    OUTPUTS, RUNTIME_SENSORS, STEP, augmented_observer, default_observer, default_model,
+    OUTPUTS, RUNTIME_SENSORS, augmented_observer, default_observer, default_model,
     runtime_C,
 )
 from ..lockstep import Lockstep, feed
@@ -291,8 +290,13 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
                                 segments=segments)
     else:
         raise ConfigError(f"--approach must be 1, 2 or 3, got {approach}")
+    C_rt = runtime_C(runtime_sensors)
+    if n_q is None:
+        keep = max(1, bias.observable_dim(C_rt, design.Aq))
+        if keep < design.n_q:
+            design.Aq, design.n_q = design.Aq[:, :keep], keep
     try:
-        bias.pbh_check(runtime_C(runtime_sensors), design.Aq, STATES, runtime_sensors)
+        bias.pbh_check(C_rt, design.Aq, STATES, runtime_sensors)
     except bias.AugmentationError as exc:
         raise ConfigError(f"{source}: the estimated A_q cannot be used with the run-time sensors "
                           f"{', '.join(runtime_sensors)}: {exc}") from None
@@ -300,7 +304,8 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
     out.update({"design_sensors": states, "runtime_sensors": list(runtime_sensors),
                 "source": str(source),
                 "rule": f"n_q = number of singular values >= {bias.DIM_RATIO:g} x the largest, "
-                        f"at most {max_dim} (the run-time sensors)"})
+                        f"at most {max_dim} (the run-time sensors), and reduced until C·A_q "
+                        f"(run-time C) has condition number <= {bias.MAX_COND:g}"})
     return out
 
 

@@ -15,7 +15,8 @@ back-pressure valve therefore raises :math:`p_\mathrm{em}`.
 
 .. math::
     \dot p_\mathrm{im} &= \tfrac{R_a T_\mathrm{im}}{V_\mathrm{im}}(W_c + W_\mathrm{egr} - W_\mathrm{ei}) \\
-    \dot p_\mathrm{em} &= \tfrac{R_e T_\mathrm{em}}{V_\mathrm{em}}(W_\mathrm{ei} + W_f - W_t - W_\mathrm{egr}) \\
+    \dot p_\mathrm{em} &= \tfrac{R_e T_\mathrm{em}}{V_\mathrm{em}}
+        (W_\mathrm{ei} + W_f - W_t - W_\mathrm{egr}) \\
     \dot\omega_t &= \frac{P_t\eta_m - P_c}{J_t\,\omega_t}
 
 with the components of :mod:`cell.plant.airpath_parts`. :func:`airpath_rhs` is

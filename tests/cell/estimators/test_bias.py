@@ -169,3 +169,11 @@ def test_augment_moves_the_stationary_point_by_aq_q():
     np.testing.assert_allclose(aug.F(0, z, u, {}), numerical_jacobian(lambda v: aug.f(0, v, u, {}), z),
                                atol=1e-6)
     np.testing.assert_allclose(aug.H(0, z, u, {}), [[1.0, 0.0, 0.0]], atol=1e-8)
+
+
+def test_observable_dim_drops_a_nearly_dependent_column():
+    C = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    Aq = np.array([[0.585, 0.78], [0.81, 0.62], [0.061, 0.078]])  # C·A_q nearly rank 1
+    assert bias.observable_dim(C, Aq) == 1
+    assert bias.observable_dim(C, np.array([[1.0, 0.0], [0.5, 0.5], [0.0, 1.0]])) == 2
+    assert bias.observable_dim(C, np.array([[0.0], [1.0], [0.0]])) == 0

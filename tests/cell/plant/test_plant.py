@@ -379,4 +379,5 @@ def test_simulate_is_deterministic_and_duration_defaults_to_the_cycle():
     assert a == b
     sched = duty_cycle("rated")
     n = sum(1 for _ in simulate(db, large_diesel(DutyCycle("short", sched.knots, 0.5), 0)))
-    assert n == 50 + 50 + 25 + 25 + 25 + 5
+    # seed 004's frames, then the air path's (seed 002): sensors, P_EM, truth at 20 ms
+    assert n == 50 + 50 + 25 + 25 + 25 + 5 + 25 + 25 + 25

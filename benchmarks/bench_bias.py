@@ -44,7 +44,8 @@ def main(seconds: float = 60.0) -> None:
         print(f"  {block.name:<20} {1e6 * elapsed / len(rows):7.1f} us/step = "
               f"{seconds / elapsed:6.1f} x real time (goal >= 100: "
               f"{'met' if seconds / elapsed >= 100 else 'NOT met'})")
-    print(f"  both side by side    {1e6 * total / len(rows):7.1f} us/step = {seconds / total:6.1f} x real time")
+    print(f"  both side by side    {1e6 * total / len(rows):7.1f} us/step = "
+          f"{seconds / total:6.1f} x real time")
 
 
 if __name__ == "__main__":

@@ -408,6 +408,7 @@ def augment(model: Model, Aq: np.ndarray, prefix: str = "Q_BIAS_") -> Model:
                  dt=model.dt, method=model.method, max_step=model.max_step, units=model.units)
 
 
-__all__ = ["DIM_RATIO", "MAX_COND", "AugmentationError", "observable_dim", "BiasDesign", "approach1", "approach2", "approach3",
-           "augment", "augmented_linear", "choose_dim", "largest_angle_deg", "max_augmentation",
-           "pbh_check", "pbh_rank", "segment_mask", "stationary_map", "stationary_segments"]
+__all__ = ["DIM_RATIO", "MAX_COND", "AugmentationError", "BiasDesign", "approach1", "approach2",
+           "approach3", "augment", "augmented_linear", "choose_dim", "largest_angle_deg",
+           "max_augmentation", "observable_dim", "pbh_check", "pbh_rank", "segment_mask",
+           "stationary_map", "stationary_segments"]

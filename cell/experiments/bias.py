@@ -220,7 +220,7 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
         obs = augmented_observer(bias.max_augmentation(np.eye(3)[[OUTPUTS.index(s) for s in states]]),
                                  "bias-design", sensors=states, channels={})
     rt = Runtime(db, [obs], Rates())
-    x_names = list(obs._x_out)
+    x_names = list(obs.outputs[:len(obs.model.states)])
     names = [*INPUTS, *states, *x_names]
     rec = _Recorder(rt, names, extra=lambda: {"K": obs.core.K.copy()})
     fed = feed(rt, frames, rec)

@@ -163,11 +163,11 @@ NO_BIAS = Biases(1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0)
 
 def _flows(x, u, p: AirPathParams) -> tuple[float, ...]:
     """Flows, temperatures and powers at state ``x`` and input ``u`` (SI units)."""
-    x0, x1, x2 = (float(v) for v in x[:3])
+    x0, x1, x2 = x.tolist()[:3] if isinstance(x, np.ndarray) else map(float, x[:3])
     p_im = x0 * 1e3
     p_em = x1 * 1e3
     omega = max(x2, 0.0) * RADS_PER_KRPM
-    fuel_lph, speed, vgt, egr, bp_l, bp_r = (float(v) for v in u)
+    fuel_lph, speed, vgt, egr, bp_l, bp_r = u.tolist() if isinstance(u, np.ndarray) else map(float, u)
     w_f = max(fuel_lph, 0.0) * p.fuel_density / 3600.0
     p_es = p.p_amb + 0.5 * (bp_l + bp_r) * PA_PER_MMH2O
     w_ei = cylinder_flow(p.eta_vol, max(p_im, 0.0), p.t_im, max(speed, 0.0), p.displacement)

@@ -81,10 +81,25 @@ def test_design_without_pem_sensor_gives_zero_pem_row(design_log, tmp_path):
     assert Aq[1, 0] == 0.0 and np.abs(Aq[[0, 2], 0]).max() > 0.1
 
 
-def test_approach3_agrees_with_approach2(design_log, design, tmp_path):
-    out = tmp_path / "d3.json"
-    B.design_main(_design_args(design_log, out, approach=3))
-    assert largest_angle_deg(load_design(out), np.array(design[0]["Aq"])) < 30.0
+@pytest.mark.parametrize("approach", [1, 3])
+def test_approaches_1_and_3_agree_with_approach2(design_log, design, tmp_path, approach):
+    """§4.1 (measured states, no observer) and §4.3 (maximally augmented observer) find the
+    direction Approach 2 finds."""
+    out = tmp_path / "d.json"
+    B.design_main(_design_args(design_log, out, approach=approach))
+    assert json.loads(out.read_text())["approach"] == approach
+    assert largest_angle_deg(load_design(out), np.array(design[0]["Aq"])) < 5.0
+
+
+def test_approach1_needs_every_state_measured(design_log, tmp_path):
+    with pytest.raises(ConfigError, match="approach 1 needs every state"):
+        B.design_main(_design_args(design_log, tmp_path / "d.json", approach=1, states="P_IM,N_T"))
+
+
+def test_experiment_refuses_a_run_too_short(tmp_path):
+    args = argparse.Namespace(out=str(tmp_path), json=True, seconds=50.0, seed=0, no_progress=True)
+    with pytest.raises(ConfigError, match="--seconds must be >= 100"):
+        B.main(args)
 
 
 @pytest.fixture(scope="module")

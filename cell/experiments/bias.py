@@ -215,6 +215,11 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
     if absent or not states:
         raise ConfigError(f"{source}: no values of {', '.join(absent) or 'any air-path sensor'} "
                           f"(the sensors of --states {','.join(states) or '(none)'})")
+    if approach not in (1, 2, 3):
+        raise ConfigError(f"--approach must be 1, 2 or 3, got {approach}")
+    if approach == 1 and len(states) < 3:
+        raise ConfigError("--approach 1 needs every state measured (C of full column rank): "
+                          "use a log with P_EM and --states P_IM,P_EM,N_T")
     obs = default_observer("bias-design", sensors=states, channels={}, rate="FAS")
     if approach == 3:
         obs = augmented_observer(bias.max_augmentation(np.eye(3)[[OUTPUTS.index(s) for s in states]]),
@@ -267,9 +272,6 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
         resid = ys[mask] / scale - (xs[mask][:, :3] @ C.T)
         design = bias.approach2(resid, maps, weights, n_q=n_q, max_dim=max_dim, segments=segments)
     elif approach == 1:
-        if len(states) < 3:
-            raise ConfigError("--approach 1 needs every state measured (C of full column rank): "
-                              "use a log with P_EM and --states P_IM,P_EM,N_T")
         scale = np.array([1.0, 1.0, 1000.0])
         idx = np.flatnonzero(mask)
         idx = idx[idx + 1 < len(r.t)]
@@ -284,12 +286,10 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
             Fs.append(Fk)
         design = bias.approach1(X1, np.array(P), Fs, seg_of[idx], n_q=n_q, max_dim=max_dim,
                                 segments=segments)
-    elif approach == 3:
+    else:
         qs = xs[mask][:, 3:]
         design = bias.approach3(qs, bias.max_augmentation(C), n_q=n_q, max_dim=max_dim,
                                 segments=segments)
-    else:
-        raise ConfigError(f"--approach must be 1, 2 or 3, got {approach}")
     C_rt = runtime_C(runtime_sensors)
     if n_q is None:
         keep = max(1, bias.observable_dim(C_rt, design.Aq))
@@ -598,6 +598,10 @@ def design_main(args: argparse.Namespace) -> int:
     print(f"dim q = {design['n_q']} ({design['rule']})")
     print("A_q estimate (rows P_IM, P_EM, N_T):\n" + _matrix(design["Aq"]))
     print("stationary segments: " + ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in design["segments"]))
+    unseen = [s for s in OUTPUTS if s not in design["design_sensors"]]
+    if unseen:
+        print(f"note: no sensor of {', '.join(unseen)} in the design, so its row of A_q is zero "
+              "(seed 002, §4.4): the augmentation cannot correct it")
     print(f"wrote {args.out}")
     return 0
 

@@ -228,7 +228,14 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
     x_names = list(obs.outputs[:len(obs.model.states)])
     names = [*INPUTS, *states, *x_names]
     rec = _Recorder(rt, names, extra=lambda: {"K": obs.core.K.copy()})
-    fed = feed(rt, frames, rec)
+    span = (frames[-1].timestamp - frames[0].timestamp) if frames else 0.0
+    with _progress(span, "design bias", progress) as bar:
+        def on_tick(t: float) -> None:
+            rec(t)
+            if t - frames[0].timestamp >= bar.n + 1.0:
+                bar.update(1)
+
+        fed = feed(rt, frames, on_tick)
     if fed.error is not None:
         raise ConfigError(f"{source}: {fed.error}")
     r = rec.record()
@@ -592,7 +599,7 @@ def design_main(args: argparse.Namespace) -> int:
     if not log.exists():
         raise ConfigError(f"LOG {log}: no such file")
     design = design_from_frames(_frames(log), states, args.approach, source=str(log),
-                                n_q=args.dim)
+                                n_q=args.dim, progress=True)
     write_design(Path(args.out), design)
     print("S_r = diag(" + ", ".join(f"{s:.4g}" for s in design["singular_values"]) + ")")
     print(f"dim q = {design['n_q']} ({design['rule']})")

@@ -40,7 +40,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .airpath_parts import (
-    CP_EXH, R_AIR, R_EXH, compressor_flow, compressor_power, cylinder_flow, orifice_flow,
+    CP_EXH, GAMMA_EXH, R_AIR, R_EXH, compressor_flow, compressor_power, cylinder_flow, orifice_flow,
     pressure_derivative, shaft_acceleration, turbine_flow, turbine_power,
 )
 from .base import Plant, lag_factor
@@ -179,7 +179,7 @@ def _flows(x, u, p: AirPathParams) -> tuple[float, ...]:
     a_vgt = p.a_vgt_max * p.turbine_flow_factor * vgt_frac
     w_t = turbine_flow(a_vgt, p_em, t_em, p_es, p.k_t)
     pr_t = p_es / max(p_em, 1.0)
-    dh = 2.0 * CP_EXH * t_em * max(1.0 - min(pr_t, 1.0) ** ((1.3 - 1.0) / 1.3), 1e-6)
+    dh = 2.0 * CP_EXH * t_em * max(1.0 - min(pr_t, 1.0) ** ((GAMMA_EXH - 1.0) / GAMMA_EXH), 1e-6)
     bsr = p.r_t * omega / math.sqrt(dh)
     eta_t = p.eta_t_factor * max(p.eta_t_max * (1.0 - p.c_bsr * (bsr / p.bsr_opt - 1.0) ** 2), 0.2)
     pt = turbine_power(max(w_t, 0.0), t_em, pr_t, eta_t)

@@ -40,8 +40,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .airpath_parts import (
-    CP_EXH, GAMMA_EXH, R_AIR, R_EXH, compressor_flow, compressor_power, cylinder_flow, orifice_flow,
-    pressure_derivative, shaft_acceleration, turbine_flow, turbine_power,
+    CP_AIR, CP_EXH, GAMMA_EXH, R_AIR, R_EXH, compressor_map_flow, compressor_outlet_temperature,
+    compressor_power, cylinder_flow, isothermal_volume, restriction_flow, shaft_acceleration,
+    turbine_flow, turbine_power,
 )
 from .base import Plant, lag_factor
 
@@ -174,21 +175,26 @@ def _flows(x, u, p: AirPathParams) -> tuple[float, ...]:
     w_eo = w_ei + w_f
     t_em = p.t_im + p.exhaust_heat * w_f / (CP_EXH * max(w_eo, 1e-3))
     a_egr = p.a_egr_max * p.egr_flow * min(max(egr, 0.0), 100.0) / 100.0
-    w_egr = orifice_flow(a_egr, p_em, t_em, p_im)
+    # EGR flows from the exhaust to the intake manifold only (a reverse flow is cut off)
+    w_egr = max(restriction_flow(a_egr, p_em, t_em, p_im, R_EXH, GAMMA_EXH), 0.0)
     vgt_frac = p.vgt_min_frac + (1.0 - p.vgt_min_frac) * min(max(vgt, 0.0), 100.0) / 100.0
     a_vgt = p.a_vgt_max * p.turbine_flow_factor * vgt_frac
-    w_t = turbine_flow(a_vgt, p_em, t_em, p_es, p.k_t)
+    w_t = turbine_flow(p_em, t_em, p_es, a_vgt, p.k_t, R_EXH)
     pr_t = p_es / max(p_em, 1.0)
     dh = 2.0 * CP_EXH * t_em * max(1.0 - min(pr_t, 1.0) ** ((GAMMA_EXH - 1.0) / GAMMA_EXH), 1e-6)
     bsr = p.r_t * omega / math.sqrt(dh)
     eta_t = p.eta_t_factor * max(p.eta_t_max * (1.0 - p.c_bsr * (bsr / p.bsr_opt - 1.0) ** 2), 0.2)
-    pt = turbine_power(max(w_t, 0.0), t_em, pr_t, eta_t)
+    pt = turbine_power(max(w_t, 0.0), t_em, max(pr_t, 1e-6), eta_t, CP_EXH, GAMMA_EXH)
     pr_c = p_im / p.p_amb
-    w_c = compressor_flow(pr_c, omega, p.r_c, p.psi_max, p.phi_max, p.p_amb, p.t_amb)
+    w_c = compressor_map_flow(pr_c, omega, p.r_c, p.psi_max, p.phi_max, p.p_amb, p.t_amb)
     rho = p.p_amb / (R_AIR * p.t_amb)
     phi_rel = w_c / (rho * math.pi * p.r_c ** 2 * max(p.r_c * omega, 1.0)) / p.phi_max
     eta_c = p.eta_c_factor * max(p.eta_c_max * (1.0 - p.c_eta_c * (phi_rel - 0.55) ** 2), 0.3)
-    pc = compressor_power(w_c, p.t_amb, max(pr_c, 1.0), eta_c) if pr_c > 1.0 else 0.0
+    if pr_c > 1.0:
+        pc = compressor_power(w_c, p.t_amb, compressor_outlet_temperature(p.t_amb, pr_c, eta_c),
+                              CP_AIR)
+    else:
+        pc = 0.0
     return w_c, w_egr, w_ei, w_f, w_t, t_em, pt, pc, omega
 
 
@@ -196,9 +202,9 @@ def airpath_rhs(t: float, x, u, p: AirPathParams) -> np.ndarray:
     """``f(t, x, u, params)``: d/dt of (p_im kPa, p_em kPa, n_t krpm) (seed 002, App. A)."""
     w_c, w_egr, w_ei, w_f, w_t, t_em, pt, pc, omega = _flows(x, u, p)
     return np.array([
-        pressure_derivative(R_AIR, p.t_im, p.v_im, w_c + w_egr, w_ei) * 1e-3,
-        pressure_derivative(R_EXH, t_em, p.v_em, w_ei + w_f, w_t + w_egr) * 1e-3,
-        shaft_acceleration(pt, pc, p.inertia, omega) / RADS_PER_KRPM,
+        isothermal_volume(R_AIR * p.t_im / p.v_im, w_c + w_egr, w_ei) * 1e-3,
+        isothermal_volume(R_EXH * t_em / p.v_em, w_ei + w_f, w_t + w_egr) * 1e-3,
+        shaft_acceleration(pt, pc, omega, p.inertia, 1.0, omega_min=100.0) / RADS_PER_KRPM,
     ])
 
 

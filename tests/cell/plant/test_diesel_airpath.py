@@ -22,22 +22,26 @@ def test_orifice_is_choked_below_the_critical_ratio_and_continuous():
     g = 1.3
     crit = (2 / (g + 1)) ** (g / (g - 1))
     choked = math.sqrt(g * (2 / (g + 1)) ** ((g + 1) / (g - 1)))  # textbook choked Psi
-    assert parts.orifice_psi(0.2, g) == pytest.approx(choked, rel=1e-9)
-    assert parts.orifice_psi(crit * 0.999, g) == pytest.approx(choked, rel=1e-9)
-    a, b = parts.orifice_psi(0.99 - 1e-9, g), parts.orifice_psi(0.99 + 1e-9, g)
+    assert parts.flow_function(0.2, g) == pytest.approx(choked, rel=1e-9)
+    assert parts.flow_function(crit * 0.999, g) == pytest.approx(choked, rel=1e-9)
+    a, b = parts.flow_function(0.99 - 1e-9, g), parts.flow_function(0.99 + 1e-9, g)
     assert a == pytest.approx(b, rel=1e-5)
-    assert parts.orifice_psi(1.0, g) == 0.0 == parts.orifice_psi(1.2, g)
+    assert parts.flow_function(1.0, g) == 0.0
 
 
 def test_closed_forms():
-    assert parts.pressure_derivative(287.0, 300.0, 0.1, 1.0, 0.5) == pytest.approx(287 * 300 / 0.1 * 0.5)
     assert parts.cylinder_flow(1.0, 1e5, 300.0, 1200.0, 0.012) == pytest.approx(
         1e5 * 1200 * 0.012 / (120 * 287 * 300))
-    assert parts.compressor_power(2.0, 300.0, 1.0, 0.7) == 0.0
-    assert parts.turbine_power(2.0, 900.0, 1.0, 0.7) == 0.0
-    assert parts.shaft_acceleration(1000.0, 400.0, 0.5, 3000.0) == pytest.approx(600 / 1500)
+    assert parts.turbine_power(2.0, 900.0, 1.0, 0.7, parts.CP_EXH, parts.GAMMA_EXH) == 0.0
+    # the compressor map: zero head at pressure ratio 1 gives the map's largest flow, a head
+    # at the surge line none
+    r, w = 0.1, 3000.0
+    rho_area_u = 1e5 / (287.0 * 300.0) * math.pi * r * r * r * w
+    assert parts.compressor_map_flow(1.0, w, r, 1.1, 0.2, 1e5, 300.0) == pytest.approx(0.2 * rho_area_u)
+    pr_surge = (1.1 * (r * w) ** 2 / (2 * parts.CP_AIR * 300.0) + 1.0) ** (1.4 / 0.4)
+    assert parts.compressor_map_flow(pr_surge * 1.01, w, r, 1.1, 0.2, 1e5, 300.0) == 0.0
     # turbine flow falls as the outlet pressure rises (the back-pressure coupling)
-    w = [parts.turbine_flow(1e-3, 3e5, 800.0, p, 1.5) for p in (1.0e5, 1.1e5, 1.2e5)]
+    w = [parts.turbine_flow(3e5, 800.0, p, 1e-3, 1.5, parts.R_EXH) for p in (1.0e5, 1.1e5, 1.2e5)]
     assert w[0] > w[1] > w[2] > 0
 
 

@@ -38,6 +38,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.optimize import fsolve
 
 from .airpath_parts import (
     CP_AIR, CP_EXH, GAMMA_EXH, R_AIR, R_EXH, compressor_map_flow, compressor_outlet_temperature,
@@ -335,10 +336,48 @@ class DieselAirPath(Plant):
         self.egr += self._a_act * (self._egr_setpoint(load) - self.egr)
 
     def start(self, u: Mapping[str, float]) -> None:
-        """Settle to the steady state of the initial inputs (20 s of simulated time)."""
-        for _ in range(round(20.0 / self.period)):
-            self._advance(0.0, u)
+        """Start in the steady state of the initial inputs, controllers included.
+
+        Solved for directly (:meth:`_steady`); if that fails, 20 s of simulated time settle it.
+        """
+        if not self._steady(u):
+            for _ in range(round(20.0 / self.period)):
+                self._advance(0.0, u)
         self._draw()
+
+    def _steady(self, u: Mapping[str, float]) -> bool:
+        """Solve f(x) = 0 with the controllers at rest: the boost on its set-point and the
+        VGT free in 10..100 %, or, when the VGT saturates, the VGT at its limit and the boost
+        free. Returns False when no solution is found."""
+        load = u.get("ENGINE_LOAD", 0.0) / 100.0
+        speed = u.get("ENGINE_SPEED", 0.0)
+        sp = self.boost_setpoint(speed, load)
+        egr = self._egr_setpoint(load)
+        ff = self._vgt_feedforward(load)
+        p = self._params_at(0.0)
+        base = self._inputs(u)
+
+        def at(vgt: float) -> tuple[float, ...]:
+            return (base[0], base[1], vgt, egr, base[4], base[5])
+
+        def free_vgt(z):
+            return airpath_rhs(0.0, (sp, z[0], z[1]), at(z[2]), p)
+
+        guess = np.array([sp * 1.2 + 2.0, 8.0 + 36.0 * min(max(load, 0.0), 1.0), ff])
+        with np.errstate(all="ignore"):
+            z, _, ier, _ = fsolve(free_vgt, guess, full_output=True)
+            if ier == 1 and 10.0 <= z[2] <= 100.0 and np.abs(free_vgt(z)).max() < 1e-6:
+                x, vgt = np.array([sp, z[0], z[1]]), float(z[2])
+            else:
+                vgt = 100.0 if z[2] > 100.0 or not np.isfinite(z[2]) else 10.0
+                x, _, ier, _ = fsolve(lambda v: airpath_rhs(0.0, v, at(vgt), p),
+                                      np.array([sp, guess[0], guess[1]]), full_output=True)
+                if ier != 1 or np.abs(airpath_rhs(0.0, x, at(vgt), p)).max() > 1e-6:
+                    return False
+        self.x = np.asarray(x, dtype=float)
+        self.vgt, self.egr = vgt, egr
+        self.integral = vgt - ff - self.control.vgt_kp * (self.x[0] - sp)
+        return True
 
     def _advance(self, t: float, u: Mapping[str, float]) -> None:
         dt = self.period

@@ -220,14 +220,17 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
     if approach == 1 and len(states) < 3:
         raise ConfigError("--approach 1 needs every state measured (C of full column rank): "
                           "use a log with P_EM and --states P_IM,P_EM,N_T")
-    obs = default_observer("bias-design", sensors=states, channels={}, rate="FAS")
     if approach == 3:
         obs = augmented_observer(bias.max_augmentation(np.eye(3)[[OUTPUTS.index(s) for s in states]]),
                                  "bias-design", sensors=states, channels={})
-    rt = Runtime(db, [obs], Rates())
-    x_names = list(obs.outputs[:len(obs.model.states)])
+    elif approach == 2:
+        obs = default_observer("bias-design", sensors=states, channels={}, rate="FAS")
+    else:
+        obs = None  # Approach 1 uses the measurements themselves: no observer (§4.1)
+    rt = Runtime(db, [obs] if obs is not None else [], Rates())
+    x_names = list(obs.outputs[:len(obs.model.states)]) if obs is not None else []
     names = [*INPUTS, *states, *x_names]
-    rec = _Recorder(rt, names, extra=lambda: {"K": obs.core.K.copy()})
+    rec = _Recorder(rt, names, extra=(lambda: {"K": obs.core.K.copy()}) if obs is not None else None)
     span = (frames[-1].timestamp - frames[0].timestamp) if frames else 0.0
     with _progress(span, "design bias", progress) as bar:
         def on_tick(t: float) -> None:
@@ -253,7 +256,7 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
     mask = ok & bias.segment_mask(r.t, segments)
     model = default_model()
     C = np.eye(3)[[OUTPUTS.index(s) for s in states]]
-    xs = np.column_stack([r[n] for n in x_names])
+    xs = np.column_stack([r[n] for n in x_names]) if x_names else np.zeros((len(r.t), 0))
     us = np.column_stack([r[n] for n in INPUTS])
     ys = np.column_stack([r[s] for s in states])
     dt = 1.0 / Rates().FAS
@@ -261,18 +264,19 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
     for k, (a, b) in enumerate(segments):
         seg_of[(r.t >= a) & (r.t <= b)] = k
     maps, weights = [], []
-    for k in range(len(segments)):
+    for k in range(len(segments) if approach == 2 else 0):
+        # eq. 9's map at each stationary operating point: F of one filter step at the
+        # segment's mean state and input, K the filter's gain at the segment's end
         idx = np.flatnonzero(mask & (seg_of == k))
         if len(idx) == 0:
             continue
         x_m, u_m = xs[idx].mean(axis=0), us[idx].mean(axis=0)
         _, F = model.step(0.0, x_m[:3], u_m, dt, jacobian=True)
-        K = rec.more[idx[-1]]["K"][:3] if approach != 3 else None
-        if K is not None:
-            Cs = C * np.array([1.0, 1.0, 1000.0])[None, :]  # h's Jacobian (N_T in rpm)
-            maps.append(bias.stationary_map(F, K, Cs) / np.array(
-                [1000.0 if s == "N_T" else 1.0 for s in states])[:, None])
-            weights.append(len(idx))
+        K = rec.more[idx[-1]]["K"][:3]
+        Cs = C * np.array([1.0, 1.0, 1000.0])[None, :]  # h's Jacobian (N_T in rpm)
+        maps.append(bias.stationary_map(F, K, Cs) / np.array(
+            [1000.0 if s == "N_T" else 1.0 for s in states])[:, None])
+        weights.append(len(idx))
     max_dim = len(runtime_sensors)
     if approach == 2:
         scale = np.array([1000.0 if s == "N_T" else 1.0 for s in states])

@@ -21,7 +21,7 @@ DESIGN_S, EVAL_S = 300.0, 300.0
 
 @pytest.fixture(scope="module")
 def study():
-    return B.simulation_study(seed=0)
+    return B.simulation_study(seed=0, duration=400.0)  # the experiment runs 600 s
 
 
 def test_simulation_study_two_dominant_singular_values_and_small_angle(study):

@@ -27,9 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..plant.diesel_airpath import (
-    INPUTS, STATES, UNITS, AirPathParams, airpath_jacobian, airpath_rhs,
-)
+from ..plant.diesel_airpath import INPUTS, STATES, UNITS, AirPathParams, airpath_rhs
 from .bias import AugmentationError, augment, pbh_check
 from .core import Model
 from .observer import ObserverBlock
@@ -60,9 +58,42 @@ def _H(t, x, u, p):
     return np.diag(_SCALE)
 
 
+class _CachedRhs:
+    """:func:`airpath_rhs` and its Jacobian for one observer, with a one-entry cache.
+
+    An EKF step evaluates the model at the same point three times: the prediction, the
+    Jacobian pass of the same Euler step and the base point of the forward differences
+    (:func:`airpath_jacobian`). The cache keeps that to one evaluation (four per step
+    instead of six). One instance per model, so the observers of two threads never share it.
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple[bytes, bytes] | None = None
+        self._value: np.ndarray | None = None
+
+    def f(self, t, x, u, p) -> np.ndarray:
+        key = (np.asarray(x, dtype=float).tobytes(), np.asarray(u, dtype=float).tobytes())
+        if key != self._key:
+            self._value = airpath_rhs(t, x, u, p)
+            self._key = key
+        return self._value
+
+    def jacobian(self, t, x, u, p) -> np.ndarray:
+        """Forward differences as :func:`airpath_jacobian`, the base point from the cache."""
+        x = np.asarray(x, dtype=float)[:3]
+        f0 = self.f(t, x, u, p)
+        out = np.empty((3, 3))
+        for j, h in enumerate((1e-4, 1e-4, 1e-5)):
+            xh = x.copy()
+            xh[j] += h
+            out[:, j] = (airpath_rhs(t, xh, u, p) - f0) / h
+        return out
+
+
 def default_model(params: AirPathParams | None = None) -> Model:
     """Seed 002's default model (eq. 1) of the air path, on the estimator core."""
-    return Model(STATES, INPUTS, OUTPUTS, airpath_rhs, _h, F=airpath_jacobian, H=_H,
+    rhs = _CachedRhs()
+    return Model(STATES, INPUTS, OUTPUTS, rhs.f, _h, F=rhs.jacobian, H=_H,
                  params=params or AirPathParams(), dt=0.0, method="euler", max_step=STEP,
                  units={**UNITS, "N_T": "krpm"})
 

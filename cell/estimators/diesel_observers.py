@@ -27,7 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from ..plant.diesel_airpath import INPUTS, STATES, UNITS, AirPathParams, airpath_rhs
+from ..plant.diesel_airpath import (
+    INPUTS, STATES, UNITS, AirPathParams, airpath_jacobian, airpath_rhs,
+)
 from .bias import AugmentationError, augment, pbh_check
 from .core import Model
 from .observer import ObserverBlock
@@ -79,15 +81,8 @@ class _CachedRhs:
         return self._value
 
     def jacobian(self, t, x, u, p) -> np.ndarray:
-        """Forward differences as :func:`airpath_jacobian`, the base point from the cache."""
-        x = np.asarray(x, dtype=float)[:3]
-        f0 = self.f(t, x, u, p)
-        out = np.empty((3, 3))
-        for j, h in enumerate((1e-4, 1e-4, 1e-5)):
-            xh = x.copy()
-            xh[j] += h
-            out[:, j] = (airpath_rhs(t, xh, u, p) - f0) / h
-        return out
+        """:func:`airpath_jacobian` with its base point from the cache."""
+        return airpath_jacobian(t, x, u, p, f0=self.f(t, x, u, p))
 
 
 def default_model(params: AirPathParams | None = None) -> Model:

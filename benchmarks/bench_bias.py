@@ -27,7 +27,7 @@ RATE_HZ = 100.0
 
 def inputs(seconds: float) -> list[dict[str, float]]:
     plant = large_diesel("etc", 0, pem_sensor=False)
-    names = ("FUEL_RATE", "ENGINE_SPEED", "VGT_POS", "EGR_POS", "EXH_BP_L", "EXH_BP_R", "P_IM", "N_T")
+    names = ("FUEL_RATE", "ENGINE_SPEED", "VGT_POS", "EGR_POS", "EXH_BP_L", "EXH_BP_R", "DSL_P_IM", "N_T")
     rows = []
     for _ in range(round(seconds * RATE_HZ)):
         plant.step()
@@ -39,7 +39,7 @@ def trivial_observer() -> ObserverBlock:
     """x' = -x + u on three states, two measured: the platform's floor."""
     A = -np.eye(3)
     H = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    model = Model(("a", "b", "c"), ("FUEL_RATE",), ("P_IM", "N_T"),
+    model = Model(("a", "b", "c"), ("FUEL_RATE",), ("DSL_P_IM", "N_T"),
                   lambda t, x, u, p: A @ x + u[0], lambda t, x, u, p: H @ x,
                   F=lambda t, x, u, p: A, H=lambda t, x, u, p: H, method="euler", max_step=0.01)
     return ObserverBlock("platform-floor", model, Q=[1.0] * 3, R=[1.0, 1.0], rate="FAS")

@@ -5,11 +5,17 @@ from __future__ import annotations
 from . import registry
 from .controller import controllers
 from .estimators.adaptive import adaptive_filters
+from .estimators.airpath import AirPathObserver
 from .estimators.diesel_observers import airpath_observers
-from .experiments.bias import BIAS, BIAS_DESIGN
 from .estimators.filters import native_filters
+from .estimators.twc import twc_observers
+from .experiments.airpath import AIRPATH
+from .experiments.airpath_design import AIRPATH_DESIGN
+from .experiments.bias import BIAS, BIAS_DESIGN
 from .experiments.closed_loop import CLOSED_LOOP
+from .experiments.twc import TWC
 from .plant.profiles import LARGE_DIESEL
+from .plant.si_turbo import SI_TURBO
 from .registry import BlockFamily, BlockSet
 
 # block families: GET/PATCH /{section}/{name} and a section of the tuning file each
@@ -23,6 +29,7 @@ registry.family(BlockFamily("observer", "observers", "model-based observers on t
 
 # engine profiles
 registry.engine(LARGE_DIESEL)
+registry.engine(SI_TURBO)
 
 # the runtime's native blocks
 registry.block_set(BlockSet("seed004-filters", lambda s: [*native_filters(), *adaptive_filters()],
@@ -34,8 +41,17 @@ registry.block_set(BlockSet("seed004-controllers",
 # seed 002: the default and the bias-augmented air-path observers side by side
 registry.block_set(BlockSet("seed002-airpath", lambda s: airpath_observers(s.bias_design),
                             engines=("large-diesel",)))
+# seed 003's constant-gain EKF of the SI air path, on the shipped gain table
+registry.block_set(BlockSet("seed003-airpath", lambda s: [AirPathObserver()], engines=("si-turbo",)))
 
-# experiments and design tools
+registry.block_set(BlockSet("seed000-twc", twc_observers, engines=("si-turbo",)))
+
+# experiments
 registry.experiment(CLOSED_LOOP)
+registry.experiment(TWC)
+registry.experiment(AIRPATH)
 registry.experiment(BIAS)
+
+# design tools
+registry.design(AIRPATH_DESIGN)
 registry.design(BIAS_DESIGN)

@@ -1,5 +1,5 @@
-"""The ``testcell`` command: ``up``, ``sim``, ``replay``, ``sweep``, ``tune``, ``experiment`` and
-``design``."""
+"""The ``testcell`` command: ``up``, ``sim``, ``replay``, ``sweep``, ``tune``, ``experiment``,
+``design`` and ``scenario``."""
 
 from __future__ import annotations
 
@@ -199,6 +199,9 @@ def _common_runtime_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dbc", action="append", default=None, metavar="PATH",
                    help="add a DBC file, or a folder of them, to the cell's own dbc/*.dbc "
                         "(repeatable): your ECU and DAQ frames decode into channels")
+    p.add_argument("--osc-init", type=float, default=None, metavar="X",
+                   help="initial OSC guess of the catalyst observer twc, normalised to fresh "
+                        "(default 1)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -262,6 +265,13 @@ def build_parser() -> argparse.ArgumentParser:
     tp = sub.add_parser("tune", help="estimate Kalman Q and R from a CAN log, no truth needed")
     tune_module.add_arguments(tp)
     tp.set_defaults(func=_with_args_only(tune_module.main))
+
+    from . import scenario as scenario_module
+
+    sc = sub.add_parser("scenario", help="send a scenario command (KEY=VALUE) to a running "
+                                         "simulator; --list shows the keys")
+    scenario_module.add_arguments(sc)
+    sc.set_defaults(func=lambda settings, args: scenario_module.main(args, settings))
 
     from . import experiments
 

@@ -126,7 +126,7 @@ def _words(text: str) -> tuple[str, ...]:
 
 #: How a ``TESTCELL_<KEY>`` value is read (others are text).
 _ENV_PARSERS: dict[str, Callable[[str], Any]] = {
-    "seed": int, "speed": float, "duration": float, "port": int, "state": Path,
+    "seed": int, "speed": float, "duration": float, "port": int, "state": Path, "osc_init": float,
     "bias_design": Path,
     "native": _bool, "no_controllers": _bool, "no_sim": _bool,
     "dbc": _words, "scripts": _words, "plugins": _words,
@@ -158,6 +158,8 @@ class Settings:
     bias_design: Path | None = None
     """Design file of the large diesel's augmented observer (``testcell design bias``);
     ``None``: the design shipped with the cell (seed 002)."""
+    osc_init: float | None = None
+    """Initial OSC guess of the catalyst observer, normalised to fresh (``--osc-init``)."""
     # -- the service --------------------------------------------------------------------
     host: str = "127.0.0.1"
     port: int = 8000
@@ -234,6 +236,10 @@ class Settings:
 
         if self.log_level not in LOG_LEVELS:
             raise ConfigError(f"--log-level {self.log_level!r}: choose one of {', '.join(LOG_LEVELS)}")
+        if self.osc_init is not None and not (math.isfinite(self.osc_init)
+                                              and 0.05 < self.osc_init <= 4.0):
+            raise ConfigError(f"--osc-init must be in (0.05, 4] (normalised to the fresh "
+                              f"catalyst), got {self.osc_init}")
         by_key = {o.key: o for o in SIM_OPTIONS}
         for key in ("speed", "duration"):
             by_key[key].validate(getattr(self, key))
@@ -257,7 +263,10 @@ class Settings:
 
         engine = self.engine or registry.DEFAULT_ENGINE
         profile = registry.engine_profile(engine)
-        return replace(self, engine=engine, duty=self.duty or profile.default_duty)
+        resolved = replace(self, engine=engine, duty=self.duty or profile.default_duty)
+        if self.engine is None:
+            resolved.check()  # an engine's own option given without --engine: the default's?
+        return resolved
 
     def sim_argv(self, bus: str) -> list[str]:
         """``testcell sim`` arguments that hand the simulator every simulator setting."""

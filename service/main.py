@@ -8,7 +8,7 @@ from cell import __version__, registry
 from cell.context import Cell
 
 from . import errors
-from .routes import channels, filters, health, page, scripts
+from .routes import channels, filters, health, page, scenario, scripts
 from .routes.blocks import block_router
 
 #: Routes a block family has beyond GET/PATCH, by family name.
@@ -34,5 +34,6 @@ def create_app(cell: Cell) -> FastAPI:
             FAMILY_ROUTES.get(fam.name, lambda r: None)(router)
             app.include_router(router)
     app.include_router(scripts.router)
+    app.include_router(scenario.router)
     app.include_router(page.router)
     return app

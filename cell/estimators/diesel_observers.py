@@ -6,10 +6,10 @@ the estimator platform (:class:`~cell.estimators.observer.ObserverBlock`), discr
 Euler forward steps of 10 ms as seed 002, §2.2 does. At run time they measure ``P_IM`` and
 ``N_T``; ``P_EM`` is estimated, not measured (§6.2).
 
-- ``airpath-default`` (seed 002's *default observer*): publishes ``P_IM_EST_DEFAULT``,
-  ``P_EM_EST_DEFAULT``, ``N_T_EST_DEFAULT``;
+- ``airpath-default`` (seed 002's *default observer*): publishes ``DSL_P_IM_EST_DEFAULT``,
+  ``DSL_P_EM_EST_DEFAULT``, ``N_T_EST_DEFAULT``;
 - ``airpath-augmented`` (the *augmented observer*, eq. 3/4 with the designed
-  :math:`\\hat A_q`): publishes ``P_IM_EST``, ``P_EM_EST``, ``N_T_EST`` and the bias
+  :math:`\\hat A_q`): publishes ``DSL_P_IM_EST``, ``DSL_P_EM_EST``, ``N_T_EST`` and the bias
   states ``Q_BIAS_1 ...``.
 
 :math:`\\hat A_q` comes from a design file written by ``testcell design bias LOG``
@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..plant.diesel_airpath import (
-    INPUTS, STATES, UNITS, AirPathParams, airpath_jacobian, airpath_rhs,
+    INPUTS, SIGNAL, STATES, UNITS, AirPathParams, airpath_jacobian, airpath_rhs,
 )
 from .bias import AugmentationError, augment, pbh_check
 from .core import Model
@@ -36,7 +36,8 @@ from .observer import ObserverBlock
 
 #: The design the runtime uses when no ``bias_design`` file is set.
 SHIPPED_DESIGN = Path(__file__).with_name("data") / "bias_large_diesel.json"
-#: Model outputs: the sensors' channels (N_T in rpm, the state in krpm).
+#: Model outputs, one per state (N_T in rpm, the state in krpm); their bus signals are
+#: :data:`~cell.plant.diesel_airpath.SIGNAL`.
 OUTPUTS = ("P_IM", "P_EM", "N_T")
 #: The sensors the observers use at run time (§6.2: not P_EM).
 RUNTIME_SENSORS = ("P_IM", "N_T")
@@ -102,8 +103,8 @@ def runtime_C(sensors: Sequence[str] = RUNTIME_SENSORS) -> np.ndarray:
 def default_observer(name: str = "airpath-default", sensors: Sequence[str] = RUNTIME_SENSORS,
                      channels: dict[str, str] | None = None, rate: str = "FAS") -> ObserverBlock:
     """The default observer (EKF on the default model) measuring ``sensors``."""
-    channels = channels if channels is not None else {s: f"{s}_EST_DEFAULT" for s in STATES}
-    return ObserverBlock(name, default_model(), measurements={s: s for s in sensors},
+    channels = channels if channels is not None else {s: f"{SIGNAL[s]}_EST_DEFAULT" for s in STATES}
+    return ObserverBlock(name, default_model(), measurements={s: SIGNAL[s] for s in sensors},
                          Q=list(Q_STATES), R=[R_DIAG[s] for s in sensors], x0=list(X0),
                          P0=[100.0, 400.0, 100.0], rate=rate, channels=channels,
                          prefix="AIRPATH_DEF")
@@ -122,9 +123,9 @@ def augmented_observer(Aq: np.ndarray, name: str = "airpath-augmented",
     model = augment(default_model(), Aq)
     nq = Aq.shape[1]
     if channels is None:
-        channels = {s: f"{s}_EST" for s in STATES} | {f"Q_BIAS_{i + 1}": f"Q_BIAS_{i + 1}"
+        channels = {s: f"{SIGNAL[s]}_EST" for s in STATES} | {f"Q_BIAS_{i + 1}": f"Q_BIAS_{i + 1}"
                                                        for i in range(nq)}
-    return ObserverBlock(name, model, measurements={s: s for s in sensors},
+    return ObserverBlock(name, model, measurements={s: SIGNAL[s] for s in sensors},
                          Q=[*Q_STATES, *[Q_BIAS] * nq], R=[R_DIAG[s] for s in sensors],
                          x0=[*X0, *[0.0] * nq], P0=[100.0, 400.0, 100.0, *[100.0] * nq],
                          rate=rate, channels=channels, prefix="AIRPATH_AUG",

@@ -4,8 +4,8 @@ The design tool (seed 002, §4.2, Approach 2 by default)
 -------------------------------------------------------
 ``testcell design bias LOG [--states P_IM,P_EM,N_T] [--approach 2] [--out FILE]`` replays a
 large-diesel log through the *default observer* of :mod:`cell.estimators.diesel_observers`
-measuring ``--states`` (by default every air-path state with a sensor in the log: with
-``P_EM`` on the bus, all three, as seed 002, §6.2 does), finds the stationary segments
+measuring ``--states`` (state names; by default every air-path state with a sensor in the
+log: with ``DSL_P_EM`` on the bus, all three, as seed 002, §6.2 does), finds the stationary segments
 automatically from engine speed and fuel (:func:`cell.estimators.bias.stationary_segments`),
 takes the SVD of the stationary residuals, chooses dim q by
 :data:`~cell.estimators.bias.DIM_RATIO` (at most the run-time sensors, P_IM and N_T) and
@@ -49,7 +49,7 @@ from ..estimators.diesel_observers import (
     runtime_C,
 )
 from ..lockstep import Lockstep, feed
-from ..plant.diesel_airpath import INPUTS, STATES
+from ..plant.diesel_airpath import INPUTS, SIGNAL, STATES
 from ..plant.profiles import large_diesel
 from ..runtime import Rates, Runtime
 from ..sim.simulator import Simulator
@@ -205,13 +205,13 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
                           "large-diesel air path's inputs (a log of `testcell sim --engine "
                           "large-diesel`)")
     if states is None:
-        states = [s for s in OUTPUTS if s in present]
+        states = [s for s in OUTPUTS if SIGNAL[s] in present]
     states = list(states)
     bad = [s for s in states if s not in OUTPUTS]
     if bad:
         raise ConfigError(f"--states: {', '.join(bad)} is not an air-path state; choose from "
                           f"{', '.join(OUTPUTS)}")
-    absent = [s for s in states if s not in present]
+    absent = [SIGNAL[s] for s in states if SIGNAL[s] not in present]
     if absent or not states:
         raise ConfigError(f"{source}: no values of {', '.join(absent) or 'any air-path sensor'} "
                           f"(the sensors of --states {','.join(states) or '(none)'})")
@@ -229,7 +229,7 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
         obs = None  # Approach 1 uses the measurements themselves: no observer (§4.1)
     rt = Runtime(db, [obs] if obs is not None else [], Rates())
     x_names = list(obs.outputs[:len(obs.model.states)]) if obs is not None else []
-    names = [*INPUTS, *states, *x_names]
+    names = [*INPUTS, *(SIGNAL[s] for s in states), *x_names]
     rec = _Recorder(rt, names, extra=(lambda: {"K": obs.core.K.copy()}) if obs is not None else None)
     span = (frames[-1].timestamp - frames[0].timestamp) if frames else 0.0
     with _progress(span, "design bias", progress) as bar:
@@ -258,7 +258,7 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
     C = np.eye(3)[[OUTPUTS.index(s) for s in states]]
     xs = np.column_stack([r[n] for n in x_names]) if x_names else np.zeros((len(r.t), 0))
     us = np.column_stack([r[n] for n in INPUTS])
-    ys = np.column_stack([r[s] for s in states])
+    ys = np.column_stack([r[SIGNAL[s]] for s in states])
     dt = 1.0 / Rates().FAS
     seg_of = np.full(len(r.t), -1)
     for k, (a, b) in enumerate(segments):
@@ -345,8 +345,8 @@ def write_design(path: Path, design: dict[str, Any]) -> Path:
 
 
 # -- the diesel: evaluation ---------------------------------------------------------------------
-EVAL_NAMES = ("P_IM_TRUE", "P_EM_TRUE", "N_T_TRUE", "P_IM_EST_DEFAULT", "P_EM_EST_DEFAULT",
-              "N_T_EST_DEFAULT", "P_IM_EST", "P_EM_EST", "N_T_EST", "P_IM", "N_T",
+EVAL_NAMES = (*(f"{SIGNAL[s]}{k}" for k in ("_TRUE", "_EST_DEFAULT", "_EST") for s in STATES),
+              "DSL_P_IM", "N_T",
               "ENGINE_SPEED", "FUEL_RATE", "EXH_BP_L_TRUE")
 
 
@@ -383,9 +383,9 @@ def error_table(r: Record, start: float = SCORE_FROM) -> dict[str, dict[str, flo
     sel = r.t >= start
     out = {}
     for s, scale in (("P_IM", 1.0), ("P_EM", 1.0), ("N_T", 1000.0)):
-        truth = r[f"{s}_TRUE"][sel]
+        truth = r[f"{SIGNAL[s]}_TRUE"][sel]
         row = {}
-        for label, ch in (("default", f"{s}_EST_DEFAULT"), ("augmented", f"{s}_EST")):
+        for label, ch in (("default", f"{SIGNAL[s]}_EST_DEFAULT"), ("augmented", f"{SIGNAL[s]}_EST")):
             e = r[ch][sel] * scale - truth
             e = e[np.isfinite(e)]
             row[f"max_abs_{label}"] = float(np.max(np.abs(e)))
@@ -475,9 +475,10 @@ def plot_diesel(out: Path, rec: Record) -> list[Path]:
     paths = []
     fig, axes = plt.subplots(3, 1, figsize=(9, 7.5), sharex=True)
     for ax, (s, label, k) in zip(axes, rows):
-        ax.plot(t, rec[f"{s}_TRUE"], "k", lw=1.0, label="truth")
-        ax.plot(t, rec[f"{s}_EST_DEFAULT"] * k, "C0", lw=0.8, label="default observer")
-        ax.plot(t, rec[f"{s}_EST"] * k, "C3", lw=0.8, label="augmented observer")
+        sig = SIGNAL[s]
+        ax.plot(t, rec[f"{sig}_TRUE"], "k", lw=1.0, label="truth")
+        ax.plot(t, rec[f"{sig}_EST_DEFAULT"] * k, "C0", lw=0.8, label="default observer")
+        ax.plot(t, rec[f"{sig}_EST"] * k, "C3", lw=0.8, label="augmented observer")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[0].legend(loc="best", fontsize=8)
@@ -489,8 +490,9 @@ def plot_diesel(out: Path, rec: Record) -> list[Path]:
     plt.close(fig)
     fig, axes = plt.subplots(3, 1, figsize=(9, 7.5), sharex=True)
     for ax, (s, label, k) in zip(axes, rows):
-        ax.plot(t, rec[f"{s}_EST_DEFAULT"] * k - rec[f"{s}_TRUE"], "C0", lw=0.8, label="default")
-        ax.plot(t, rec[f"{s}_EST"] * k - rec[f"{s}_TRUE"], "C3", lw=0.8, label="augmented")
+        sig = SIGNAL[s]
+        ax.plot(t, rec[f"{sig}_EST_DEFAULT"] * k - rec[f"{sig}_TRUE"], "C0", lw=0.8, label="default")
+        ax.plot(t, rec[f"{sig}_EST"] * k - rec[f"{sig}_TRUE"], "C3", lw=0.8, label="augmented")
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_ylabel("error " + label)
         ax.grid(alpha=0.3)

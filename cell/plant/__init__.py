@@ -8,6 +8,10 @@ module                 what
 :mod:`.diesel`         the 60 L diesel on its dynamometer, its duty cycles (seed 004)
 :mod:`.exhaust`        two exhaust banks, butterfly valves, sensors, protection (seed 004)
 :mod:`.profiles`       engine profiles: ``large-diesel``
+:mod:`.si_engine`      the turbocharged SI engine: duty cycles, λ control, breathing
+:mod:`.twc_model`      the three-way catalyst's equations (seed 000, section III)
+:mod:`.catalyst`       the catalyst plant and its sensors (seed 000)
+:mod:`.si_turbo`       engine profile ``si-turbo``
 =====================  ===========================================================
 """
 

@@ -55,6 +55,11 @@ RADS_PER_KRPM = 1000.0 * 2.0 * math.pi / 60.0
 #: Model state names (seed 002's x_1, x_2, x_3) and their units.
 STATES = ("P_IM", "P_EM", "N_T")
 UNITS = {"P_IM": "kPa", "P_EM": "kPa", "N_T": "krpm"}
+#: The bus signal of each state: its sensor, and with ``_TRUE``, ``_EST`` and
+#: ``_EST_DEFAULT`` its truth and estimates. The SI air path (seed 003) owns ``P_IM``,
+#: ``P_IM_TRUE``, ``P_EM_TRUE``, ``P_IM_EST`` and ``P_EM_EST`` and the DBC files need unique
+#: names, so the diesel's manifold pressures are ``DSL_P_IM`` and ``DSL_P_EM``.
+SIGNAL = {"P_IM": "DSL_P_IM", "P_EM": "DSL_P_EM", "N_T": "N_T"}
 #: Model inputs, in the order of ``u``: the channel names they are read from.
 INPUTS = ("FUEL_RATE", "ENGINE_SPEED", "VGT_POS", "EGR_POS", "EXH_BP_L", "EXH_BP_R")
 
@@ -265,21 +270,21 @@ class DieselAirPath(Plant):
     control:
         The VGT and EGR controllers.
     pem_sensor:
-        Whether the exhaust manifold pressure has a sensor (``P_EM``). Seed 002, §6.2
+        Whether the exhaust manifold pressure has a sensor (``DSL_P_EM``). Seed 002, §6.2
         uses it for the design only; ``--no-pem-sensor`` leaves it off the bus.
     seed:
         Noise seed.
     period:
         Step period, s (the engine's 10 ms). Integrated by one classic RK4 step.
 
-    Outputs: the sensors ``P_IM`` (kPa), ``N_T`` (rpm), ``VGT_POS``, ``EGR_POS`` (%) and,
-    with ``pem_sensor``, ``P_EM`` (kPa, with the exhaust pulsation as noise); the truth
-    ``P_IM_TRUE``, ``P_EM_TRUE`` (kPa) and ``N_T_TRUE`` (rpm).
+    Outputs: the sensors ``DSL_P_IM`` (kPa), ``N_T`` (rpm), ``VGT_POS``, ``EGR_POS`` (%) and,
+    with ``pem_sensor``, ``DSL_P_EM`` (kPa, with the exhaust pulsation as noise); the truth
+    ``DSL_P_IM_TRUE``, ``DSL_P_EM_TRUE`` (kPa) and ``N_T_TRUE`` (rpm) (see :data:`SIGNAL`).
     """
 
     inputs = ("ENGINE_SPEED", "FUEL_RATE", "ENGINE_LOAD", "EXH_BP_L_TRUE", "EXH_BP_R_TRUE")
-    outputs_all = ("P_IM", "N_T", "VGT_POS", "EGR_POS", "P_EM",
-                   "P_IM_TRUE", "P_EM_TRUE", "N_T_TRUE")
+    outputs_all = ("DSL_P_IM", "N_T", "VGT_POS", "EGR_POS", "DSL_P_EM",
+                   "DSL_P_IM_TRUE", "DSL_P_EM_TRUE", "N_T_TRUE")
 
     #: sensor noise standard deviations: P_IM kPa, N_T rpm, positions %, P_EM kPa
     NOISE = {"P_IM": 0.6, "N_T": 80.0, "POS": 0.15, "P_EM": 3.0}
@@ -292,7 +297,7 @@ class DieselAirPath(Plant):
         self.biases = biases if biases is not None else Biases()
         self.control = control or ControlParams()
         self.pem_sensor = pem_sensor
-        self.outputs = tuple(o for o in self.outputs_all if pem_sensor or o != "P_EM")
+        self.outputs = tuple(o for o in self.outputs_all if pem_sensor or o != "DSL_P_EM")
         self._rng = np.random.default_rng([seed, 0x002])
         self._a_act = lag_factor(period, self.control.tau_actuator)
         self.t = 0.0
@@ -408,16 +413,16 @@ class DieselAirPath(Plant):
         p_im, p_em, n_t = (float(v) for v in self.x)
         nz = self._noise.tolist()
         out = {
-            "P_IM": p_im + nz[0],
+            "DSL_P_IM": p_im + nz[0],
             "N_T": n_t * 1000.0 + nz[1],
             "VGT_POS": min(max(self.vgt + nz[2], 0.0), 100.0),
             "EGR_POS": min(max(self.egr + nz[2] * 0.7, 0.0), 100.0),
-            "P_IM_TRUE": p_im,
-            "P_EM_TRUE": p_em,
+            "DSL_P_IM_TRUE": p_im,
+            "DSL_P_EM_TRUE": p_em,
             "N_T_TRUE": n_t * 1000.0,
         }
         if self.pem_sensor:
-            out["P_EM"] = p_em + nz[3]
+            out["DSL_P_EM"] = p_em + nz[3]
         return out
 
     def __repr__(self) -> str:

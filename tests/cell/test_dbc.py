@@ -18,10 +18,6 @@ from cell.errors import ConfigError
 from cell.estimators.filters import MovingAverage
 from cell.runtime import Runtime
 
-#: the cell's own files in dbc/ (testcell.dbc first), before any registered or user file
-OWN = [default_dbc_path(), *sorted(p for p in default_dbc_path().parent.glob("*.dbc")
-                                   if p != default_dbc_path())]
-
 DATA = Path(__file__).parent / "data"
 USER = DATA / "user.dbc"
 ROOT = Path(__file__).resolve().parents[2]
@@ -76,12 +72,14 @@ def test_a_second_file_in_the_dbc_folder_is_loaded(tmp_path, monkeypatch, clean_
 
 
 def test_registered_dbc_files_are_loaded(tmp_path, clean_registry):
+    own = load().files  # testcell.dbc first, then the rest of dbc/
+    assert own[0] == default_dbc_path() and USER not in own
     registry.dbc_file(USER)
     db = load()
-    assert db.files == [*OWN, USER]
+    assert db.files == [*own, USER]
     assert db.signals["DAQ_OIL_TEMP"].file == USER and db.signals["DAQ_OIL_TEMP"].unit == "degC"
     registry.DBC_FILES.clear()
-    assert load().files == OWN
+    assert load().files == own
 
 
 # -- a user's files ------------------------------------------------------------------------
@@ -103,7 +101,7 @@ def test_user_frames_decode_into_channels_and_feed_a_filter(user_extra, clean_re
     from service.main import create_app
 
     db = load(user_extra)
-    assert db.files[:len(OWN)] == OWN and db.files[len(OWN)].name == "user.dbc"
+    assert db.files[0] == default_dbc_path() and db.files[-1].name == "user.dbc"
     rt = Runtime(db, [MovingAverage("DAQ_OIL_TEMP_MAF", "DAQ_OIL_TEMP", samples=2)])
     for msg in user_frames(db, 0.0):
         rt.ingest(msg)
@@ -172,7 +170,7 @@ def test_a_collision_between_two_user_files_names_both(tmp_path, clean_registry)
                                           r"and RIG_B in .*b\.dbc"):
         load((a, b))
     # the same file named twice (or the cell's own named again) is not a collision
-    assert load((a, str(a), default_dbc_path())).files == [*OWN, a]
+    assert load((a, str(a), default_dbc_path())).files == [*load().files, a]
 
 
 def test_a_signal_twice_in_one_file_keeps_its_error(tmp_path):

@@ -28,9 +28,10 @@ def test_block_set_of_large_diesel_has_both_observers_on_the_dbc():
     assert [b.name for b in blocks] == ["airpath-default", "airpath-augmented"]
     db = load()
     outs = set(blocks[0].outputs) | set(blocks[1].outputs)
-    for name in ("P_EM_EST_DEFAULT", "P_EM_EST", "P_IM_EST", "N_T_EST", "Q_BIAS_1"):
+    for name in ("DSL_P_EM_EST_DEFAULT", "DSL_P_EM_EST", "DSL_P_IM_EST", "N_T_EST", "Q_BIAS_1"):
         assert name in outs and name in db.signals
-    assert "P_EM" not in blocks[1].inputs  # not measured at run time
+    assert "DSL_P_EM" not in blocks[1].inputs  # not measured at run time
+    assert {"DSL_P_IM", "N_T"} <= set(blocks[1].inputs)
     Runtime(db, blocks)  # the runtime accepts them (outputs are RUNTIME signals)
 
 
@@ -66,7 +67,7 @@ def test_default_observer_tracks_an_unbiased_engine():
     rt = Runtime(db, [default_observer()])
     rows = []
     Lockstep(sim, rt, stride=2, on_tick=lambda t: rows.append(
-        (t, rt.channels["P_EM_EST_DEFAULT"].value, rt.channels["P_EM_TRUE"].value))).run(40.0)
+        (t, rt.channels["DSL_P_EM_EST_DEFAULT"].value, rt.channels["DSL_P_EM_TRUE"].value))).run(40.0)
     a = np.array([r for r in rows if r[0] > 20.0 and r[1] is not None], dtype=float)
     assert len(a) > 150
     assert abs(np.mean(a[:, 1] - a[:, 2])) < 3.0

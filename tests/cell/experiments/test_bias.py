@@ -110,7 +110,7 @@ def evaluation(design):
 
 def test_evaluation_runs_without_pem_sensor(evaluation):
     rec, _ = evaluation
-    assert "P_EM" not in rec.cols or np.isnan(rec["P_EM"]).all()
+    assert "DSL_P_EM" not in rec.cols or np.isnan(rec["DSL_P_EM"]).all()
 
 
 def test_augmented_observer_halves_the_pem_mean_error(evaluation):
@@ -118,8 +118,8 @@ def test_augmented_observer_halves_the_pem_mean_error(evaluation):
     max-abs error no worse by more than 10 %; scored against simulator truth."""
     rec, table = evaluation
     row = table["P_EM"]
-    truth = rec["P_EM_TRUE"][rec.t >= B.SCORE_FROM]
-    est = rec["P_EM_EST"][rec.t >= B.SCORE_FROM]
+    truth = rec["DSL_P_EM_TRUE"][rec.t >= B.SCORE_FROM]
+    est = rec["DSL_P_EM_EST"][rec.t >= B.SCORE_FROM]
     assert np.mean(est - truth) == pytest.approx(row["mean_augmented"])
     assert abs(row["mean_default"]) > 2.0  # the default model is biased
     assert B.mean_error_reduction(table) >= 0.5
@@ -133,11 +133,11 @@ def test_back_pressure_raises_pem_and_augmented_observer_follows(design):
     before, after = (rec.t > 25) & (rec.t < 40), rec.t > 70
     bp = rec["EXH_BP_L_TRUE"]
     assert bp[after].mean() > bp[before].mean() + 500.0
-    rise = rec["P_EM_TRUE"][after].mean() - rec["P_EM_TRUE"][before].mean()
+    rise = rec["DSL_P_EM_TRUE"][after].mean() - rec["DSL_P_EM_TRUE"][before].mean()
     assert rise > 10.0
-    est_rise = rec["P_EM_EST"][after].mean() - rec["P_EM_EST"][before].mean()
+    est_rise = rec["DSL_P_EM_EST"][after].mean() - rec["DSL_P_EM_EST"][before].mean()
     assert est_rise == pytest.approx(rise, rel=0.3)
-    assert abs(rec["P_EM_EST"][after].mean() - rec["P_EM_TRUE"][after].mean()) < 15.0
+    assert abs(rec["DSL_P_EM_EST"][after].mean() - rec["DSL_P_EM_TRUE"][after].mean()) < 15.0
 
 
 # -- bad input --------------------------------------------------------------------------------

@@ -87,11 +87,11 @@ def test_operating_points_are_physical():
     for speed, load_ in ((600.0, 0.0), (1200.0, 0.5), (1800.0, 1.0)):
         c, air = _settled(None, speed, load_, valve=40.0, seconds=40.0)
         s = c.signals
-        assert 95.0 < s["P_IM_TRUE"] < 360.0
-        assert s["P_EM_TRUE"] > s["P_IM_TRUE"] - 5.0  # a VGT diesel drives its EGR
-        assert s["P_EM_TRUE"] > 101.325 + s["EXH_BP_L_TRUE"] * 9.80665e-3
+        assert 95.0 < s["DSL_P_IM_TRUE"] < 360.0
+        assert s["DSL_P_EM_TRUE"] > s["DSL_P_IM_TRUE"] - 5.0  # a VGT diesel drives its EGR
+        assert s["DSL_P_EM_TRUE"] > 101.325 + s["EXH_BP_L_TRUE"] * 9.80665e-3
         assert 0.0 <= s["VGT_POS"] <= 100.0 and 0.0 <= s["EGR_POS"] <= 100.0
-    assert s["P_IM_TRUE"] == pytest.approx(334.4, abs=3.0)  # boost ratio 3.3 at rated
+    assert s["DSL_P_IM_TRUE"] == pytest.approx(334.4, abs=3.0)  # boost ratio 3.3 at rated
 
 
 # -- the profile -----------------------------------------------------------------------------
@@ -116,7 +116,7 @@ def test_no_pem_sensor_option_leaves_p_em_off_the_bus():
     names_off = {m.name for m, _, _ in off.schedule}
     assert {"AIRPATH_SENS", "AIRPATH_PEM", "TRUTH_AIRPATH"} <= names_on
     assert names_on - names_off == {"AIRPATH_PEM"}
-    assert "P_EM" not in off.plant.signals and "P_EM_TRUE" in off.plant.signals
+    assert "DSL_P_EM" not in off.plant.signals and "DSL_P_EM_TRUE" in off.plant.signals
     s = Settings.build({"no_pem_sensor": True}, environ={})
     assert "--no-pem-sensor" in s.sim_argv("virtual")
     assert "--no-pem-sensor" not in Settings.build({}, environ={}).sim_argv("virtual")
@@ -133,7 +133,7 @@ def test_truth_and_sensors_in_frames():
     for msg in sim.frames():
         if msg.arbitration_id in (960, 1872):
             truth.update(db.decode(msg)[1])
-    assert truth["P_IM_TRUE"] == pytest.approx(sim.plant["P_IM_TRUE"], abs=0.02)
+    assert truth["DSL_P_IM_TRUE"] == pytest.approx(sim.plant["DSL_P_IM_TRUE"], abs=0.02)
     assert truth["N_T"] == pytest.approx(sim.plant["N_T"], abs=1.0)
 
 

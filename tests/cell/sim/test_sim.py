@@ -18,7 +18,8 @@ from cell.errors import ConfigError
 from cell.settings import Settings
 
 DB = load()
-SIM_MESSAGES = {m.name: m for m in DB.db.messages if "SIM" in m.senders}
+#: the SIM messages the default engine (large-diesel) sends; other engines' frames are skipped
+SIM_MESSAGES = {m.name: m for m, _, _ in sim.build(Settings.build({}, environ={}), DB).schedule}
 
 
 def frames_in(duration: float) -> int:

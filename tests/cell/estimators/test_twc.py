@@ -1,0 +1,264 @@
+"""The catalyst's dual EKF block (cell/estimators/twc.py): its Jacobians, its robustness and
+its place in the runtime and the service."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from cell import cli
+from cell.context import Cell
+from cell.dbc import load
+from cell.errors import ParamError
+from cell.estimators.core import numerical_jacobian
+from cell.estimators.twc import (
+    MODEL_KINETICS,
+    Operating,
+    TWCObserver,
+    model_A,
+    model_C,
+    model_f,
+    model_g,
+    predict,
+)
+from cell.plant.twc_model import TWCKinetics
+from cell.runtime import Runtime
+from cell.settings import Settings
+from cell.tuning import TuningStore
+from service.main import create_app
+
+RNG = np.random.default_rng(7)
+POINTS = [
+    (np.array([*RNG.uniform(0.05, 0.95, 3), RNG.uniform(0.3, 1.6)]),
+     (RNG.uniform(0.003, 0.05), RNG.uniform(300.0, 750.0), lam))
+    for lam in (0.93, 0.97, 1.0, 1.02, 1.2, 10.0)
+]
+WARM = {"EXH_MASS_FLOW": 0.01, "T_CAT": 450.0, "LAMBDA_PRE": 1.0, "LAMBDA_MID": 1.0}
+
+
+@pytest.mark.parametrize("x,u", POINTS)
+def test_state_jacobian_matches_finite_differences(x, u):
+    A = model_A(x, u)
+    An = numerical_jacobian(lambda v: model_f(v, u), x)
+    np.testing.assert_allclose(A, An, rtol=1e-5, atol=1e-6 * np.abs(An).max())
+    assert np.all(A[3] == 0.0)  # dOSC/dt = 0 (eq. 21)
+    assert np.all(np.triu(A[:3, :3], 1) == 0.0)  # a cell sees only the gas from upstream
+
+
+@pytest.mark.parametrize("x,u", POINTS)
+def test_output_jacobian_matches_finite_differences(x, u):
+    C = model_C(x, u)
+    Cn = numerical_jacobian(lambda v: [model_g(v, u)], x)
+    np.testing.assert_allclose(C, Cn, rtol=1e-5, atol=1e-7 * max(np.abs(Cn).max(), 1e-3))
+
+
+@pytest.mark.parametrize("x,u", POINTS[:4])
+def test_transition_jacobian_matches_finite_differences(x, u):
+    op = Operating(u, MODEL_KINETICS)
+    x_new, Phi = predict(list(x), op, 0.1, 0.01, (0.05, 4.0))
+    Pn = numerical_jacobian(lambda v: predict(list(v), op, 0.1, 0.01, (0.05, 4.0))[0], x)
+    np.testing.assert_allclose(np.array(Phi), Pn, rtol=1e-5, atol=1e-8)
+    # Euler sub-steps: the same as ten steps of x + h f(x) written out here
+    ref = np.array(x, dtype=float)
+    for _ in range(10):
+        ref = np.clip(ref + 0.01 * model_f(ref, u), [0, 0, 0, 0.05], [1, 1, 1, 4.0])
+    np.testing.assert_allclose(x_new, ref, rtol=1e-12)
+
+
+def test_lambda_mid_of_a_saturated_or_cold_catalyst_is_lambda_pre():
+    u_cold = (0.01, 20.0, 1.03)  # no kinetics at 20 °C: the gas passes unchanged (eq. 12)
+    assert model_g([0.5, 0.5, 0.5, 1.0], u_cold) == pytest.approx(1.03, abs=1e-4)
+    assert model_g([0.999, 0.999, 0.999, 1.0], (0.01, 500.0, 1.02)) > 1.01  # full: O2 slips
+    assert model_g([0.5, 0.5, 0.5, 1.0], (0.01, 500.0, 1.02)) == pytest.approx(1.0, abs=1e-3)
+
+
+def test_states_stay_bounded_and_outputs_are_named():
+    ob = TWCObserver(osc_init=0.06, phi_init=0.99)
+    out = None
+    for k in range(300):
+        lam = 10.0 if (k // 50) % 2 else 0.9
+        out = ob.step(k * 0.1, {"EXH_MASS_FLOW": 0.03, "T_CAT": 600.0, "LAMBDA_PRE": lam,
+                                "LAMBDA_MID": lam})
+        x = ob.core.x
+        assert np.all((x[:3] >= 0.0) & (x[:3] <= 1.0)) and x[3] > 0.0
+        P = ob.core.P
+        np.testing.assert_allclose(P, P.T, atol=0)
+        assert np.linalg.eigvalsh(P).min() > 0.0
+    assert set(out) == {"SOX_EST", "PHI_1_EST", "PHI_2_EST", "PHI_3_EST", "OSC_EST",
+                        "LAMBDA_MID_EST"}
+    assert out["SOX_EST"] == pytest.approx((out["PHI_1_EST"] + out["PHI_2_EST"]
+                                            + out["PHI_3_EST"]) / 3)
+
+
+@pytest.mark.parametrize("channel,value,needle", [
+    ("LAMBDA_PRE", math.nan, "input LAMBDA_PRE is nan"),
+    ("EXH_MASS_FLOW", math.inf, "input EXH_MASS_FLOW is inf"),
+    ("LAMBDA_MID", 0.2, "LAMBDA_MID = 0.2 is outside its plausible range [0.5, 16]"),
+    ("T_CAT", 2000.0, "T_CAT = 2000 is outside its plausible range [-50, 1200]"),
+    ("EXH_MASS_FLOW", -0.01, "EXH_MASS_FLOW = -0.01 is outside"),
+])
+def test_bad_inputs_are_refused_and_the_state_is_kept(channel, value, needle):
+    ob = TWCObserver()
+    for k in range(20):
+        ob.step(k * 0.1, dict(WARM, LAMBDA_PRE=1.0 + 0.02 * (-1) ** k))
+    x, P, t = ob.core.x.copy(), ob.core.P.copy(), ob._t
+    with pytest.raises(ArithmeticError, match=re_escape(needle)):
+        ob.step(2.0, dict(WARM, **{channel: value}))
+    np.testing.assert_array_equal(ob.core.x, x)
+    np.testing.assert_array_equal(ob.core.P, P)
+    assert ob._t == t and ob.core.resets == 0
+
+
+def re_escape(text):
+    import re
+
+    return re.escape(text)
+
+
+def test_a_long_gap_is_not_predicted_over_but_widens_p():
+    ob = TWCObserver()
+    for k in range(10):
+        ob.step(k * 0.1, WARM)
+    x, p = ob.core.x.copy(), np.diag(ob.core.P).copy()
+    ob.step(0.9 + 5.0, dict(WARM, LAMBDA_PRE=1.05))  # inputs silent for 5 s
+    assert ob.skipped_gaps == 1
+    assert np.diag(ob.core.P)[3] > p[3]
+    assert ob.core.x[3] == pytest.approx(x[3], abs=0.05)
+
+
+def test_divergence_resets_with_the_reason_shown():
+    ob = TWCObserver(nis_window=3, nis_gate=0.5, innovation_limit=0.0, osc_init=0.8)
+    raised = None
+    for k in range(30):  # the model says λ_mid = λ_pre; the "sensor" says far rich
+        try:
+            ob.step(k * 0.1, dict(WARM, LAMBDA_PRE=1.0, LAMBDA_MID=0.9 if k > 5 else 1.0))
+        except ArithmeticError as exc:  # the runtime marks the tick's outputs invalid
+            raised = exc
+            break
+    assert raised is not None and "NIS above" in str(raised)
+    state = ob.state()
+    assert state["resets"] >= 1 and "NIS above" in state["last_reset_reason"]
+    assert ob.core.x[3] == pytest.approx(0.8)  # back at the initial guess
+
+
+def test_parameters_validate_as_a_whole_and_osc_init_restarts():
+    ob = TWCObserver()
+    for k in range(10):
+        ob.step(k * 0.1, WARM)
+    before = ob.params()
+    for bad, field in (({"Q": [1e-4, 1e-4, 0.0, 2e-5]}, "Q"), ({"Q": [1e-4, 1e-4, 1e-4]}, "Q"),
+                       ({"R": -1.0}, "R"), ({"osc_init": 0.0}, "osc_init"),
+                       ({"R": 1e-3, "Q": [[1, 2], [3, 4]]}, "Q")):
+        with pytest.raises(ParamError) as err:
+            ob.set_params(bad)
+        assert err.value.field == field
+        assert ob.params() == before  # all or nothing
+    ob.set_params({"Q": [1e-4, 1e-4, 1e-4, 2e-4], "R": 2e-4})
+    assert ob.core.Q[3, 3] == 2e-4 and ob.core.R[0, 0] == 2e-4 and ob.core.resets == 0
+    ob.set_params({"osc_init": 0.6})
+    assert ob.core.x[3] == 0.6 and ob.core.resets == 1
+    assert ob.state()["last_reset_reason"] == "restarted: osc_init = 0.6"
+
+
+def test_observer_model_is_not_the_plant():
+    plant = TWCKinetics()
+    assert MODEL_KINETICS.A1 != plant.A1 and MODEL_KINETICS.A2 != plant.A2
+    assert MODEL_KINETICS.osc_fresh == plant.osc_fresh  # the normalisation is shared
+    other = TWCObserver(kinetics=plant.scaled(A1=0.5))
+    assert other.kinetics.A1 == 0.5 * plant.A1
+
+
+# -- in the runtime and the service -------------------------------------------------------------
+def frames(db, t0, t1, skip=()):
+    """The catalyst's sensor frames every 10 ms (without the messages in ``skip``)."""
+    out = []
+    for i in range(round(t0 * 100), round(t1 * 100)):
+        t = i / 100
+        lam = 1.0 + 0.02 * math.sin(2 * math.pi * t)
+        if "TWC_LAMBDA" not in skip:
+            out.append(db.encode("TWC_LAMBDA", {"LAMBDA_PRE": lam, "LAMBDA_MID": 1.0}, t))
+        if "TWC_FLOW" not in skip:
+            out.append(db.encode("TWC_FLOW", {"EXH_MASS_FLOW": 0.01}, t))
+        if i % 10 == 0:
+            out.append(db.encode("TWC_TEMP", {"T_EXH": 480.0, "T_CAT": 450.0}, t))
+    return out
+
+
+@pytest.mark.parametrize("silent", ["TWC_LAMBDA", "TWC_FLOW"])
+def test_silent_lambda_or_flow_frames_make_the_outputs_stale(silent):
+    db = load()
+    rt = Runtime(db, [TWCObserver()])
+    rt.ingest_many(frames(db, 0.0, 5.0))
+    rt.advance(5.0)
+    assert rt.channel("OSC_EST").status == "ok"
+    sent = len(rt.take_outbox())
+    assert sent > 0  # TWC_OBSERVER frames on the bus
+    rt.ingest_many(frames(db, 5.0, 7.0, skip=(silent,)))
+    rt.advance(7.0)
+    for name in ("SOX_EST", "OSC_EST", "LAMBDA_MID_EST"):
+        status, reason = rt.channel(name).status_at(7.0)
+        assert status == "stale" and ("LAMBDA" in reason or "EXH_MASS_FLOW" in reason)
+    assert rt.take_outbox() == [] or all(db.decode(m)[0].name not in ("TWC_OBSERVER",)
+                                         for m in rt.take_outbox())
+    rt.ingest_many(frames(db, 7.0, 9.0))
+    rt.advance(9.0)
+    assert rt.channel("OSC_EST").status == "ok"
+
+
+def test_out_of_range_frame_marks_outputs_invalid_and_keeps_the_state():
+    db = load()
+    block = TWCObserver()
+    rt = Runtime(db, [block])
+    rt.ingest_many(frames(db, 0.0, 3.0))
+    rt.advance(3.0)
+    x = block.core.x.copy()
+    # a raw value past the DBC's range: 0xFFFF x 0.00025 = 16.38 > 16
+    import can
+
+    bad = can.Message(timestamp=3.05, arbitration_id=0x311, is_extended_id=False,
+                      data=bytes([0xFF, 0xFF, 0xA0, 0x0F]))
+    rt.ingest(bad)
+    rt.advance(3.1)
+    status, reason = rt.channel("OSC_EST").status_at(3.1)
+    assert status == "invalid" and "LAMBDA_PRE = 16.3837 is outside" in reason
+    np.testing.assert_array_equal(block.core.x, x)
+
+
+def test_patch_observer_refuses_a_non_positive_definite_q_with_422(tmp_path):
+    db = load()
+    rt = Runtime(db, [TWCObserver()])
+    rt.ingest_many(frames(db, 0.0, 2.0))
+    rt.advance(2.0)
+    store = TuningStore(tmp_path / "tuning.json")
+    client = TestClient(create_app(Cell(runtime=rt, tuning=store)))
+    before = client.get("/observers/twc").json()
+    assert before["params"]["Q"] == [1e-4, 1e-4, 1e-4, 2e-5]
+    r = client.patch("/observers/twc", json={"Q": [1e-4, 1e-4, -1e-4, 2e-5]})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"] == ["body", "Q"]
+    assert "positive definite" in r.json()["detail"][0]["msg"]
+    assert client.get("/observers/twc").json()["params"] == before["params"]
+    r = client.patch("/observers/twc", json={"Q": [1e-4, 1e-4, 1e-4, 2e-4], "osc_init": 0.5})
+    assert r.status_code == 200
+    body = r.json()
+    assert body["params"]["Q"][3] == 2e-4 and body["state"]["x"][3] == 0.5
+    assert body["state"]["last_reset_reason"] == "restarted: osc_init = 0.5"
+    assert store.data["observers"]["twc"]["osc_init"] == 0.5
+
+
+def test_osc_init_is_a_setting_of_up_and_replay(tmp_path):
+    s = Settings.build({"osc_init": 0.7}, environ={})
+    blocks = cli.build_runtime(Settings.build({"osc_init": 0.7, "engine": "si-turbo"},
+                                              environ={}))[0].blocks
+    assert blocks["twc"].osc_init == 0.7 and s.osc_init == 0.7
+    assert Settings.build({}, environ={"TESTCELL_OSC_INIT": "1.4"}).osc_init == 1.4
+    from cell.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"--osc-init must be in \(0.05, 4\]"):
+        Settings.build({"osc_init": 9.0}, environ={})
+    parser = cli.build_parser()
+    args = parser.parse_args(["replay", "x.log", "--out", "x.csv", "--osc-init", "0.8"])
+    assert Settings.from_args(args, environ={}).osc_init == 0.8

@@ -6,11 +6,13 @@ from . import registry
 from .controller import controllers
 from .estimators.adaptive import adaptive_filters
 from .estimators.airpath import AirPathObserver
+from .estimators.diesel_observers import airpath_observers
 from .estimators.filters import native_filters
 from .estimators.imbalance import imbalance_observers
 from .estimators.twc import twc_observers
 from .experiments.airpath import AIRPATH
 from .experiments.airpath_design import AIRPATH_DESIGN
+from .experiments.bias import BIAS, BIAS_DESIGN
 from .experiments.closed_loop import CLOSED_LOOP
 from .experiments.imbalance import IMBALANCE
 from .experiments.twc import TWC
@@ -38,6 +40,9 @@ registry.block_set(BlockSet("seed004-filters", lambda s: [*native_filters(), *ad
 registry.block_set(BlockSet("seed004-controllers",
                             lambda s: [] if s.no_controllers else controllers("kalman"),
                             engines=("large-diesel",)))
+# seed 002: the default and the bias-augmented air-path observers side by side
+registry.block_set(BlockSet("seed002-airpath", lambda s: airpath_observers(s.bias_design),
+                            engines=("large-diesel",)))
 # seed 003's constant-gain EKF of the SI air path, on the shipped gain table
 registry.block_set(BlockSet("seed003-airpath", lambda s: [AirPathObserver()], engines=("si-turbo",)))
 
@@ -51,6 +56,8 @@ registry.experiment(CLOSED_LOOP)
 registry.experiment(TWC)
 registry.experiment(AIRPATH)
 registry.experiment(IMBALANCE)
+registry.experiment(BIAS)
 
 # design tools
 registry.design(AIRPATH_DESIGN)
+registry.design(BIAS_DESIGN)

@@ -46,8 +46,15 @@ class Option:
     help: str = ""
     metavar: str | None = None
     check: Callable[[Any], str | None] | None = None
+    switch: bool = False
+    """A flag without a value (``--no-pem-sensor``): true when given; ``type`` then reads
+    its ``TESTCELL_<KEY>`` value (use :func:`parse_bool`)."""
 
     def add_to(self, parser: argparse.ArgumentParser, note: str = "") -> None:
+        if self.switch:
+            parser.add_argument(self.flag, dest=self.key, action="store_true", default=None,
+                                help=self.help + note)
+            return
         parser.add_argument(self.flag, dest=self.key, type=self.type, default=None,
                             metavar=self.metavar, help=self.help + note)
 
@@ -109,6 +116,10 @@ def _bool(text: str) -> bool:
     raise ValueError(f"not a yes/no value: {text!r}")
 
 
+#: Reads a yes/no setting (``1/0``, ``true/false``, ``yes/no``, ``on/off``).
+parse_bool = _bool
+
+
 def _words(text: str) -> tuple[str, ...]:
     return tuple(w.strip() for w in str(text).split(",") if w.strip())
 
@@ -116,6 +127,7 @@ def _words(text: str) -> tuple[str, ...]:
 #: How a ``TESTCELL_<KEY>`` value is read (others are text).
 _ENV_PARSERS: dict[str, Callable[[str], Any]] = {
     "seed": int, "speed": float, "duration": float, "port": int, "state": Path, "osc_init": float,
+    "bias_design": Path,
     "native": _bool, "no_controllers": _bool, "no_sim": _bool, "protect_reads": _bool,
     "max_body": int, "max_script": int,
     "dbc": _words, "scripts": _words, "plugins": _words,
@@ -144,6 +156,9 @@ class Settings:
     scripts: tuple[str, ...] = ()
     native: bool = False
     no_controllers: bool = False
+    bias_design: Path | None = None
+    """Design file of the large diesel's augmented observer (``testcell design bias``);
+    ``None``: the design shipped with the cell (seed 002)."""
     osc_init: float | None = None
     """Initial OSC guess of the catalyst observer, normalised to fresh (``--osc-init``)."""
     # -- the service --------------------------------------------------------------------
@@ -279,8 +294,11 @@ class Settings:
                 argv += [opt.flag, str(value)]
         eng = engine_options()
         for key, value in s.plant.items():
-            if value is not None:
-                argv += [eng[key][0].flag, str(value)]
+            opt = eng[key][0]
+            if opt.switch:
+                argv += [opt.flag] if value else []
+            elif value is not None:
+                argv += [opt.flag, str(value)]
         for path in s.dbc:
             argv += ["--dbc", path]
         return argv

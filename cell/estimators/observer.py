@@ -76,6 +76,9 @@ class ObserverBlock(Block):
         chi-square quantile (0, the default, disables it).
     units:
         Output channel -> unit; by default from ``model.units``.
+    channels:
+        Model state -> channel name of its estimate, overriding ``<PREFIX>_<STATE>`` (e.g.
+        ``{"P_EM": "P_EM_EST"}`` to publish a DBC signal of that name).
 
     Tunable parameters (``set_params``, all or nothing): ``Q``, ``R``, ``P0`` (lists of
     diagonal elements), ``x0`` (a list), ``nis_gate`` and ``nis_window``. New ``Q``/``R``
@@ -105,6 +108,7 @@ class ObserverBlock(Block):
         nis_gate: float = 0.9999,
         nis_window: int = 0,
         units: Mapping[str, str] | None = None,
+        channels: Mapping[str, str] | None = None,
     ) -> None:
         self.model = model
         inputs = dict(inputs) if inputs is not None else {i: i for i in model.inputs}
@@ -126,7 +130,10 @@ class ObserverBlock(Block):
         self._z_ch = list(measurements.values())
         self._s_ch = list(schedule)
         prefix = prefix or name
-        self._x_out = [f"{prefix}_{s}" for s in model.states]
+        if channels and not set(channels) <= set(model.states):
+            raise ParamError("channels", f"must name model states ({', '.join(model.states)}), got "
+                                         f"{', '.join(channels)}")
+        self._x_out = [(channels or {}).get(s, f"{prefix}_{s}") for s in model.states]
         self._hat_out = [f"{prefix}_{o}_HAT" for o in model.outputs]
         unit_map = dict(zip(self._x_out, model.states)) | dict(zip(self._hat_out, model.outputs))
         model_units = {ch: model.units[q] for ch, q in unit_map.items() if q in model.units}

@@ -12,9 +12,10 @@ from dataclasses import replace
 
 from .. import registry
 from ..errors import ConfigError
-from ..settings import Option, Settings
+from ..settings import Option, Settings, parse_bool
 from .composition import Composition
 from .diesel import CYCLES, DieselEngine, DutyCycle, EngineParams, exhaust_flow, rated_bank_flow
+from .diesel_airpath import AirPathParams, Biases, DieselAirPath
 from .exhaust import ExhaustBanks, ExhaustParams, valve_for_back_pressure
 
 #: Seed 004's back-pressure target, mmH2O: the default valve opening gives it at rated.
@@ -28,8 +29,12 @@ def large_diesel(
     bp_limit: float | None = None,
     engine: EngineParams | None = None,
     exhaust: ExhaustParams | None = None,
+    pem_sensor: bool = True,
+    airpath: AirPathParams | None = None,
+    biases: Biases | None = None,
 ) -> Composition:
-    """The 60 L diesel on its dynamometer with two exhaust banks (seed 004).
+    """The 60 L diesel on its dynamometer with two exhaust banks (seed 004) and its air path
+    (seed 002, Appendix A).
 
     Parameters
     ----------
@@ -45,6 +50,15 @@ def large_diesel(
         Engine-protection limit, mmH2O (default :attr:`ExhaustParams.bp_limit`, 1200).
     engine, exhaust:
         The plants' constants.
+    pem_sensor:
+        Whether ``P_EM`` (the exhaust manifold pressure sensor) goes on the bus; seed 002
+        uses it for the design only (``--no-pem-sensor``).
+    airpath, biases:
+        The air path's constants and its slowly varying biases against the observers'
+        default model (:mod:`cell.plant.diesel_airpath`).
+
+    The air path steps after the exhaust banks and reads their true back-pressure at the
+    turbine outlet; it feeds nothing back, so the seed-004 plants behave as without it.
     """
     engine = engine or EngineParams()
     exhaust = replace(exhaust or ExhaustParams(), rated_flow=exhaust_flow(engine, engine.rated_speed, 1.0))
@@ -54,9 +68,11 @@ def large_diesel(
         initial_valve = valve_for_back_pressure(exhaust, TARGET_BP, rated_bank_flow(engine))
     diesel = DieselEngine(cycle, engine)
     banks = ExhaustBanks(exhaust, seed=seed, initial_valve=initial_valve)
+    air = DieselAirPath(airpath, biases, pem_sensor=pem_sensor, seed=seed, period=engine.period)
     about = {"duty": diesel.schedule.name, "seed": seed,
-             "valve": f"{banks.valves['L'].position:.1f} %", "bp limit": f"{banks.bp_limit:g} mmH2O"}
-    return Composition("large-diesel", [diesel, banks], diesel.schedule.duration, about)
+             "valve": f"{banks.valves['L'].position:.1f} %", "bp limit": f"{banks.bp_limit:g} mmH2O",
+             **({} if pem_sensor else {"P_EM sensor": "off"})}
+    return Composition("large-diesel", [diesel, banks, air], diesel.schedule.duration, about)
 
 
 def _valve_check(v: float) -> str | None:
@@ -75,13 +91,14 @@ def _build_large_diesel(s: Settings) -> Composition:
     if s.duty not in CYCLES:
         raise ConfigError(f"--duty {s.duty!r} is not a duty cycle of large-diesel; choose one "
                           f"of: {', '.join(CYCLES)}")
-    return large_diesel(s.duty, s.seed, s.plant.get("valve"), s.plant.get("bp_limit"))
+    return large_diesel(s.duty, s.seed, s.plant.get("valve"), s.plant.get("bp_limit"),
+                        pem_sensor=not s.plant.get("no_pem_sensor"))
 
 
 LARGE_DIESEL = registry.EngineProfile(
     name="large-diesel",
     description="60 L diesel on a water brake, two exhaust banks with back-pressure valves "
-                "(seed 004)",
+                "(seed 004), air path with VGT and EGR (seed 002)",
     build=_build_large_diesel,
     duties=CYCLES,
     shipped_scripts=True,
@@ -90,5 +107,8 @@ LARGE_DIESEL = registry.EngineProfile(
                help="initial valve opening in %% (default: the 680 mmH2O opening at rated)"),
         Option("bp_limit", "--bp-limit", float, metavar="MMH2O", check=_limit_check,
                help="engine-protection back-pressure limit (default 1200)"),
+        Option("no_pem_sensor", "--no-pem-sensor", parse_bool, switch=True,
+               help="leave the exhaust manifold pressure sensor P_EM off the bus (seed 002: "
+                    "it serves the bias design only)"),
     ),
 )

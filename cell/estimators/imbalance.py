@@ -69,6 +69,10 @@ CYCLE = int(720 / SAMPLE_DEG)
 STEP = math.radians(SAMPLE_DEG)
 FIRING_ORDER = (1, 3, 4, 2)
 
+#: speed bands whose observer designs are kept (oldest dropped first): a drive sweeps
+#: hundreds of 1 % bands, and memory must not grow with it
+MAX_DESIGNS = 8
+
 
 def _firing_deg(order: tuple[int, ...] = FIRING_ORDER) -> np.ndarray:
     deg = np.zeros(N_CYL)
@@ -205,7 +209,7 @@ class UegoInversion(_StreamObserver):
                                 [self.alpha / (k * k + 1) for k in range(self.h + 1)])
                 stages.append(PeriodicObserver(A, A0, C, self.h, 0.5, g, STEP))
             got = (cascade(stages[0], stages[1]), stages[0], stages[1])
-            if len(self._designs) > 32:
+            if len(self._designs) >= MAX_DESIGNS:  # each holds ~1 MB of per-angle tables
                 self._designs.pop(next(iter(self._designs)))
             self._designs[bucket] = got
         self._lp, self._first, self._obs = got

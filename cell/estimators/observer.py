@@ -207,24 +207,27 @@ class ObserverBlock(Block):
     def state(self) -> dict[str, Any]:
         """Estimate, covariance, gain and the last update's innovation statistics (JSON)."""
         core = self.core
-        return {
-            "t": self._t,
-            "mode": core.mode,
-            "states": list(self.model.states),
-            "x": core.x.tolist(),
-            "P_diag": np.diag(core.P).tolist(),
-            "P": core.P.tolist(),
-            "K": core.K.tolist(),
-            "y": core.y.tolist(),
-            "S": core.S.tolist(),
-            "nis": core.nis,
-            "nis_threshold": core.nis_threshold,
-            "log_likelihood": _finite_or_none(core.log_likelihood),
-            "updates": core.updates,
-            "resets": core.resets,
-            "last_reset_reason": core.last_reset_reason,
-            "guard_count": core.guard_count,
-        }
+        return {"t": self._t, "mode": core.mode, "states": list(self.model.states),
+                **core_state(core), "log_likelihood": _finite_or_none(core.log_likelihood)}
 
 
-__all__ = ["ObserverBlock"]
+def core_state(core: KalmanCore) -> dict[str, Any]:
+    """A Kalman core's estimate, covariance, gain, last innovation and reset record (JSON):
+    the part of ``GET /observers/{name}`` every observer on the core shares."""
+    return {
+        "x": core.x.tolist(),
+        "P_diag": np.diag(core.P).tolist(),
+        "P": core.P.tolist(),
+        "K": core.K.tolist(),
+        "y": core.y.tolist(),
+        "S": core.S.tolist(),
+        "nis": core.nis,
+        "nis_threshold": core.nis_threshold,
+        "updates": core.updates,
+        "resets": core.resets,
+        "last_reset_reason": core.last_reset_reason,
+        "guard_count": core.guard_count,
+    }
+
+
+__all__ = ["ObserverBlock", "core_state"]

@@ -89,6 +89,7 @@ from ..plant.twc_model import (
     residence_time,
 )
 from .core import KalmanCore
+from .observer import core_state
 
 KELVIN = 273.15
 
@@ -496,22 +497,10 @@ class TWCObserver(Block):
                 "LAMBDA_MID_EST": y_hat}
 
     def state(self) -> dict[str, Any]:
-        core = self.core
         return {
             "t": self._t,
             "states": list(self.STATES),
-            "x": core.x.tolist(),
-            "P_diag": np.diag(core.P).tolist(),
-            "P": core.P.tolist(),
-            "K": core.K.tolist(),
-            "y": core.y.tolist(),
-            "S": core.S.tolist(),
-            "nis": core.nis,
-            "nis_threshold": core.nis_threshold,
-            "updates": core.updates,
-            "resets": core.resets,
-            "last_reset_reason": core.last_reset_reason,
-            "guard_count": core.guard_count,
+            **core_state(self.core),
             "skipped_gaps": self.skipped_gaps,
             "blanked": self.blanked,
             "osc_frozen": self.frozen,

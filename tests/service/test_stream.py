@@ -250,7 +250,9 @@ def test_a_client_that_stops_reading_keeps_server_memory_bounded_and_is_told_its
               f"messages (an unbounded queue: {ticks * size / 1e6:.1f} MB)")
         assert size > 5_000, size  # large messages, so an unbounded queue would show
         assert len(hub.records) == RING  # the shared ring is full and no bigger
-        assert grown < 0.05 * ticks * size, (grown, ticks * size)
+        # bounded: a small fraction of what a queue would hold (other threads' allocations in
+        # the same window add noise of some 100 kB on a loaded machine)
+        assert grown < 0.25 * ticks * size, (grown, ticks * size)
         # reading again: told of the drops, then the newest ticks; seq gaps add up to the drops
         seqs, told = [], 0
         while not seqs or seqs[-1] < hub.seq:

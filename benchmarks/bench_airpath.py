@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
-from cell.estimators.airpath import AirPathObserver
-from cell.experiments.airpath import simulate
+from cell.estimators.si_airpath import AirPathObserver
+from cell.experiments.si_airpath import simulate
 
 TICK = 0.01  # s, 100 Hz
 

@@ -17,10 +17,15 @@ import time
 
 import numpy as np
 
-from cell.estimators.diesel_observers import SHIPPED_DESIGN, augmented_observer, default_observer, load_design
+from cell.estimators.diesel_airpath import (
+    SHIPPED_DESIGN,
+    augmented_observer,
+    default_observer,
+    load_design,
+)
 from cell.estimators.core import Model
 from cell.estimators.observer import ObserverBlock
-from cell.plant.profiles import large_diesel
+from cell.plant.large_diesel import large_diesel
 
 RATE_HZ = 100.0
 

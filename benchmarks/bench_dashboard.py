@@ -29,10 +29,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cell.context import Cell  # noqa: E402
-from cell.dbc import load  # noqa: E402
-from cell.estimators.filters import native_filters  # noqa: E402
-from cell.runtime import Runtime  # noqa: E402
+from cell.app.cell import Cell  # noqa: E402
+from cell.bus.dbc import load  # noqa: E402
+from cell.estimators.backpressure import native_filters  # noqa: E402
+from cell.runtime.scheduler import Runtime  # noqa: E402
 from service.main import create_app  # noqa: E402
 from tests.service.served import served  # noqa: E402
 
@@ -89,7 +89,7 @@ def fan_out(n: int, seconds: float = 8.0) -> dict:
     db = load()
     rt = Runtime(db, native_filters())
     feeder = Feeder(rt, db)
-    gc.freeze()  # as the live cell does at start (cell/live.py)
+    gc.freeze()  # as the live cell does at start (cell/app/live.py)
     feeder.thread.start()
     try:
         with served(create_app(Cell(runtime=rt, bus="virtual:bench"))) as url:

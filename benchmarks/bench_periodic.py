@@ -19,14 +19,14 @@ from __future__ import annotations
 import sys
 import time
 
-from cell.dbc import load
-from cell.estimators.imbalance import RodInversion, UegoInversion
-from cell.lockstep import Lockstep
+from cell.bus.dbc import load
+from cell.estimators.cylinders import RodInversion, UegoInversion
+from cell.sim.lockstep import Lockstep
 from cell.plant.si_engine import steady_cycle
 from cell.plant.si_turbo import si_turbo
-from cell.runtime import Runtime
+from cell.runtime.scheduler import Runtime
 from cell.sim.simulator import Simulator
-from cell.streams import find_streams
+from cell.runtime.samples import find_streams
 
 RPM = 6000.0
 BUDGET_SPS = RPM / 60.0 * 360.0 / 6.0  # samples per second of one stream

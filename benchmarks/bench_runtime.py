@@ -17,11 +17,11 @@ from __future__ import annotations
 import sys
 import time
 
-from cell.dbc import load
-from cell.estimators.filters import native_filters
+from cell.bus.dbc import load
+from cell.estimators.backpressure import native_filters
 from cell.sim import simulate
-from cell.lockstep import feed
-from cell.runtime import Runtime
+from cell.sim.lockstep import feed
+from cell.runtime.scheduler import Runtime
 
 BUS_LIMIT_FPS = 500_000 / 138
 

@@ -2,10 +2,10 @@
 Python and filterpy's KalmanFilter, measured in one run.
 
 Run: ``.venv/bin/python benchmarks/bench_scripts.py``. Goals: within 3x of the hand-written
-filter, at least 10x faster than filterpy. The measurement lives in ``cell.formula.bench``.
+filter, at least 10x faster than filterpy. The measurement lives in ``benchmarks.bench_formula``.
 """
 
-from cell.formula.bench import main
+from benchmarks.bench_formula import main
 
 if __name__ == "__main__":
     main()

@@ -10,7 +10,7 @@ Rows (issue 13):
   over udp_multicast by another process and counted at the runtime; against classic CAN at
   1 Mbit/s (~9 000 frames/s of 8-byte frames). Goal: >= 45 000 frames/s.
 - **Script cycle**: seed 004's PUMA Kalman script against a hand-written Python filter and
-  filterpy (``cell.formula.bench``).
+  filterpy (``benchmarks.bench_formula``).
 - **Q/R sweep**: seed 004's Table 2 over an hour of samples, against filterpy in a loop and
   simdkalman (``bench_sweep.py``).
 - **Replay**: x real time, with every block loaded.
@@ -81,8 +81,8 @@ def flood(bus_spec: str, rate: float, seconds: float) -> None:
     """
     from can.interfaces.udp_multicast.utils import pack_message
 
-    from cell.bus import resolve
-    from cell.dbc import load
+    from cell.bus.interface import resolve
+    from cell.bus.dbc import load
     from cell.sim import simulate
 
     spec = resolve(bus_spec)
@@ -111,16 +111,16 @@ def flood(bus_spec: str, rate: float, seconds: float) -> None:
 
 def full_runtime():
     """The runtime ``testcell up`` runs with every engine's blocks and the shipped scripts."""
-    from cell.cli import build_runtime
-    from cell.settings import Settings
+    from cell.app.cli import build_runtime
+    from cell.core.settings import Settings
 
     rt, _ = build_runtime(Settings.build({}, environ={}))
     return rt
 
 
 def end_to_end(rates: list[float], seconds: float) -> list[dict[str, float]]:
-    from cell.bus import open_bus
-    from cell.live import LiveCell
+    from cell.bus.interface import open_bus
+    from cell.app.live import LiveCell
 
     results = []
     for rate in rates:
@@ -151,8 +151,8 @@ def end_to_end(rates: list[float], seconds: float) -> list[dict[str, float]]:
 # -- blocks: each one's step, x real time ----------------------------------------------------------
 def block_steps(seconds: float = 120.0) -> tuple[list[dict], float]:
     """Time every block's step over ``seconds`` of simulated traffic; also the replay speed."""
-    from cell.dbc import load
-    from cell.lockstep import feed
+    from cell.bus.dbc import load
+    from cell.sim.lockstep import feed
     from cell.sim import simulate
 
     db = load()
@@ -343,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     rates = [9_000, 20_000, 30_000, 45_000, 60_000]
     e2e = end_to_end(rates, 2.0 if args.quick else 5.0)
     print("script cycle ...", flush=True)
-    from cell.formula.bench import main as script_bench
+    from benchmarks.bench_formula import main as script_bench
 
     scripts = script_bench(5_000 if args.quick else 20_000)
     print("Q/R sweep ...", flush=True)

@@ -7,7 +7,7 @@ samples (36 000) of ``EXH_BP_R``, sampled from the plant running the ``transient
 back to back (the plant is stepped directly, no CAN, to keep the set-up short). Three runs of
 the same filter, side by side in this process:
 
-- ``cell.estimators.filters.kalman_bank``: all 72 pairs at once (best of 3);
+- ``cell.estimators.backpressure.kalman_bank``: all 72 pairs at once (best of 3);
 - filterpy's ``KalmanFilter`` (``predict()``/``update()`` per sample) in a Python loop per
   pair: SUBSET pairs (default 4) are timed and the time is scaled to 72;
 - simdkalman's ``KalmanFilter.compute`` (filtering only), vectorised over the 72 pairs as 72
@@ -27,7 +27,7 @@ import numpy as np
 from cell.plant import DutyCycle, duty_cycle, large_diesel
 from cell.analysis.series import Series
 from cell.analysis.sweep import sweep, table2
-from cell.estimators.filters import kalman_bank
+from cell.estimators.backpressure import kalman_bank
 
 RATE_HZ = 10.0
 SECONDS = 3600.0
@@ -133,7 +133,7 @@ def main(subset: int = 4) -> dict[str, float]:
     t_fp = t_fp_subset * m / pick.size
     t_sk = best_of(lambda: simdkalman_run(y, Q, R))
 
-    print(f"  cell.estimators.filters.kalman_bank, {m} pairs:        {t_bank:8.3f} s")
+    print(f"  cell.estimators.backpressure.kalman_bank, {m} pairs:        {t_bank:8.3f} s")
     print(f"  cell.analysis.sweep.sweep (bank + all scores):    {t_sweep:8.3f} s")
     print(f"  filterpy loop, {pick.size} pairs timed:           {t_fp_subset:8.3f} s "
           f"-> {t_fp:.1f} s scaled to {m} pairs")

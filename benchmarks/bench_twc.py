@@ -17,8 +17,8 @@ import math
 import sys
 import time
 
-from cell.estimators.twc import TWCObserver
-from cell.experiments.twc import INPUTS, record
+from cell.estimators.catalyst import TWCObserver
+from cell.experiments.catalyst import INPUTS, record
 from cell.plant.si_turbo import si_turbo
 
 RATE_HZ = 10.0  # MED

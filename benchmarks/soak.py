@@ -136,9 +136,9 @@ def stream_ws(port: int, stop: threading.Event, got: list[int], errors: list[str
 
 
 def soak_engine(engine: str, seconds: float, state_dir: Path) -> dict:
-    from cell import registry
-    from cell.dbc import load
-    from cell.settings import Settings
+    from cell.core import registry
+    from cell.bus.dbc import load
+    from cell.core.settings import Settings
     from cell.sim import build
 
     db = load()
@@ -244,9 +244,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=None, help="total length, s (overrides minutes)")
     args = p.parse_args(argv)
     total = args.seconds if args.seconds is not None else (args.minutes or 2.0) * 60.0
-    from cell import registry
+    from cell import app
+    from cell.core import registry
 
-    registry.ensure_loaded()
+    app.load()
     engines = sorted(registry.ENGINES)
     state_dir = Path(os.environ.get("TMPDIR", "/tmp")) / f"testcell-soak-{os.getpid()}"
     state_dir.mkdir(parents=True, exist_ok=True)

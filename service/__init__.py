@@ -1,1 +1,1 @@
-"""testcell's HTTP service: a thin FastAPI shell over a running :class:`cell.context.Cell`."""
+"""testcell's HTTP service: a thin FastAPI shell over a running :class:`cell.app.cell.Cell`."""

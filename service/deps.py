@@ -6,7 +6,7 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
-from cell.context import Cell
+from cell.app.cell import Cell
 
 
 def get_cell(request: Request) -> Cell:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 
-from cell.errors import ConfigError, ParamError, UnknownBlockError
+from cell.core.errors import ConfigError, ParamError, UnknownBlockError
 
 
 def install(app: FastAPI) -> None:

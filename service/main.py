@@ -4,8 +4,10 @@ from collections.abc import Callable
 
 from fastapi import APIRouter, FastAPI
 
-from cell import __version__, registry
-from cell.context import Cell
+from cell import __version__
+from cell.app import load as load_cell_parts
+from cell.core import registry
+from cell.app.cell import Cell
 
 from . import errors
 from .metrics import FrameRates
@@ -31,7 +33,7 @@ def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
         description="Live values and tuning of an emulated engine test cell that speaks CAN.",
         responses=ERROR_RESPONSES,
     )
-    registry.load_plugins()
+    load_cell_parts()
     app.state.cell = cell
     app.state.hub = StreamHub(cell.runtime)
     app.state.frame_rates = FrameRates(cell.runtime)

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from cell.runtime import OTHER_IDS, Runtime
+from cell.runtime.scheduler import OTHER_IDS, Runtime
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 

@@ -27,7 +27,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from cell.errors import ConfigError
+from cell.core.errors import ConfigError
 
 #: Methods that change state: they need the token once one is set.
 WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
@@ -37,7 +37,7 @@ OPEN_PATHS = frozenset({"/"})
 
 @dataclass(frozen=True)
 class Security:
-    """The service's access rules and size limits (from :class:`cell.settings.Settings`)."""
+    """The service's access rules and size limits (from :class:`cell.core.settings.Settings`)."""
 
     token: str | None = None
     protect_reads: bool = False

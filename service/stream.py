@@ -25,8 +25,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from cell.channels import OK
-from cell.runtime import Runtime
+from cell.runtime.channels import OK
+from cell.runtime.scheduler import Runtime
 
 #: records kept for all clients (10 s at 10 Hz)
 RING = 100

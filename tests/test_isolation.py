@@ -13,8 +13,8 @@ import urllib.request
 import can
 import pytest
 
-from cell.bus import BusSpec, open_bus, resolve
-from cell.errors import BusError
+from cell.bus.interface import BusSpec, open_bus, resolve
+from cell.core.errors import BusError
 
 GROUP_A, GROUP_B = "239.74.163.211", "239.74.163.212"
 PORT_A, PORT_B = 43211, 43212

@@ -25,8 +25,8 @@ import can
 import numpy as np
 import pytest
 
-from cell.bus import MULTICAST_GROUP
-from cell.dbc import load
+from cell.bus.interface import MULTICAST_GROUP
+from cell.bus.dbc import load
 
 pytestmark = pytest.mark.multiprocess
 

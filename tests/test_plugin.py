@@ -20,13 +20,14 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from cell import registry
-from cell.cli import build_runtime
-from cell.context import Cell
-from cell.lockstep import Lockstep
-from cell.settings import Settings
+from cell import app
+from cell.core import registry
+from cell.app.cli import build_runtime
+from cell.app.cell import Cell
+from cell.sim.lockstep import Lockstep
+from cell.core.settings import Settings
 from cell.sim import build as build_sim
-from cell.tuning import TuningStore
+from cell.app.tuning import TuningStore
 from service.main import create_app
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,7 +43,7 @@ def run_testcell(*argv, cwd=ROOT, timeout=120):
 @pytest.fixture
 def toy(monkeypatch):
     """The plugin registered in this process; every registry table restored afterwards."""
-    registry.ensure_loaded()
+    app.load()
     for table in ("ENGINES", "FAMILIES", "BLOCK_SETS", "EXPERIMENTS"):
         monkeypatch.setattr(registry, table, dict(getattr(registry, table)))
     monkeypatch.setattr(registry, "DBC_FILES", list(registry.DBC_FILES))

@@ -18,7 +18,7 @@ Methods
     y_0), every S_k is R times the S_k of the filter with (q = Q/R, 1), so R has the closed
     form :math:`\\hat R(q) = \\frac{1}{n}\\sum e_k^2/s_k` and the likelihood is profiled
     over the ratio q alone. q is found on a log grid from 1e-8 to 1e2, vectorised over the
-    grid with :func:`cell.estimators.filters.kalman_bank`, then refined twice on finer grids.
+    grid with :func:`cell.estimators.backpressure.kalman_bank`, then refined twice on finer grids.
     numpy only.
 ``als``: autocovariance least squares on the differenced series.
     For a random walk plus white noise, :math:`\\Delta y_k = v_k + w_k - w_{k-1}` has
@@ -70,10 +70,10 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..estimators.filters import kalman_bank, steady_state_gain
-from .series import add_log_options, as_samples, load_series
-from .scores import score_estimates
+from cell.core.errors import ConfigError
+from cell.estimators.backpressure import kalman_bank, steady_state_gain
+from cell.analysis.series import add_log_options, as_samples, load_series
+from cell.analysis.scores import score_estimates
 
 METHODS = ("ml", "als")
 #: Fewest valid samples :func:`autotune` accepts.

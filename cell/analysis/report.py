@@ -14,9 +14,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ..estimators.filters import MAF_SAMPLES, kalman_bank, moving_average
-from .scores import ALWAYS_KEYS, STEP_MIN, TRUTH_KEYS, Step, find_steps, steady_mask
-from .series import Series
+from cell.estimators.backpressure import MAF_SAMPLES, kalman_bank, moving_average
+from cell.analysis.scores import ALWAYS_KEYS, STEP_MIN, TRUTH_KEYS, Step, find_steps, steady_mask
+from cell.analysis.series import Series
 
 
 def _columns(ranked: Sequence[dict[str, Any]]) -> list[str]:

@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..estimators.filters import as_samples
+from cell.core.errors import ConfigError
+from cell.estimators.backpressure import as_samples
 
 
 @dataclass
@@ -92,10 +92,10 @@ def channel_series(
 ) -> Series:
     """Sample ``channel`` (and its truth) at every MED tick of a CAN log.
 
-    The log runs through a :class:`cell.runtime.Runtime` with no blocks, so the samples are
+    The log runs through a :class:`cell.runtime.scheduler.Runtime` with no blocks, so the samples are
     exactly the inputs the runtime's filters see: at each tick, the latest frame value at
     or before the tick, NaN when the channel is stale or has no value yet. Stale ticks are
-    kept; :func:`cell.estimators.filters.kalman_bank` holds its state over them as the
+    kept; :func:`cell.estimators.backpressure.kalman_bank` holds its state over them as the
     runtime does.
 
     Parameters
@@ -108,7 +108,7 @@ def channel_series(
         ``None`` (default) samples ``<channel>_TRUE`` when the log has it; a name samples
         that channel (which must be in the log); ``False`` samples no truth.
     rates:
-        :class:`cell.runtime.Rates` (default 50/10/1 Hz); samples are taken at MED.
+        :class:`cell.runtime.scheduler.Rates` (default 50/10/1 Hz); samples are taken at MED.
     progress:
         Progress bar over the log (tqdm); ``None`` lets tqdm decide, ``False`` hides it.
     db:
@@ -126,10 +126,10 @@ def channel_series(
     LogFormatError
         A malformed log line; the message carries the file and line number.
     """
-    from ..dbc import load
-    from ..lockstep import feed
-    from ..replay import read_log
-    from ..runtime import Runtime
+    from cell.bus.dbc import load
+    from cell.sim.lockstep import feed
+    from cell.runtime.replay import read_log
+    from cell.runtime.scheduler import Runtime
 
     rt = Runtime(db or load(), rates=rates)
     truth_name = f"{channel}_TRUE" if truth is None or truth is True else truth or None
@@ -193,8 +193,8 @@ def add_log_options(parser: argparse.ArgumentParser) -> None:
 
 def load_series(args: argparse.Namespace) -> Series:
     """The series a ``sweep``/``tune`` command line asks for."""
-    from ..dbc import load
-    from ..runtime import Rates
+    from cell.bus.dbc import load
+    from cell.runtime.scheduler import Rates
 
     truth: str | bool | None = getattr(args, "truth", None)
     if getattr(args, "no_truth", False):

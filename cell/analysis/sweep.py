@@ -12,8 +12,8 @@ gets numbers (:mod:`cell.analysis.scores`):
 - always: innovation whiteness (normalised autocorrelation at lags 1-10) and the mean
   normalised innovation squared (NIS).
 
-All pairs run at once through :func:`cell.estimators.filters.kalman_bank`, the filter of
-:class:`cell.estimators.filters.ScalarKalman` vectorised across pairs. The channel comes from
+All pairs run at once through :func:`cell.estimators.backpressure.kalman_bank`, the filter of
+:class:`cell.estimators.backpressure.ScalarKalman` vectorised across pairs. The channel comes from
 the log as a :class:`cell.analysis.series.Series`; the output files are written by
 :mod:`cell.analysis.report`.
 
@@ -58,10 +58,10 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..estimators.filters import MAF_SAMPLES, kalman_bank, moving_average, steady_state_gain
-from .report import format_table, json_lines, plot_png, write_csv, write_jsonl
-from .scores import (
+from cell.core.errors import ConfigError
+from cell.estimators.backpressure import MAF_SAMPLES, kalman_bank, moving_average, steady_state_gain
+from cell.analysis.report import format_table, json_lines, plot_png, write_csv, write_jsonl
+from cell.analysis.scores import (
     ALWAYS_KEYS,
     STEADY_TOL,
     STEADY_WINDOW_S,
@@ -70,7 +70,7 @@ from .scores import (
     innovation_scores,
     score_estimates,
 )
-from .series import Series, add_log_options, load_series
+from cell.analysis.series import Series, add_log_options, load_series
 
 #: Largest grid accepted (pairs).
 MAX_PAIRS = 100_000

@@ -32,9 +32,9 @@ from typing import Any
 
 import numpy as np
 
-from ..blocks import Block, Param
-from ..errors import ParamError
-from .core import GainSchedule, KalmanCore, Model
+from cell.runtime.blocks import Block, Param
+from cell.core.errors import ParamError
+from cell.estimators.core import GainSchedule, KalmanCore, Model
 
 
 def _finite_or_none(v: float | None) -> float | None:

@@ -15,11 +15,20 @@ module                 what
 =====================  ===========================================================
 """
 
-from .base import Plant
-from .composition import Composition
-from .diesel import CYCLES, RUNNING, STOPPED, TRIPPED, DieselEngine, DutyCycle, EngineParams, duty_cycle
-from .exhaust import BANKS, TRIP_EXH_BP_LIMIT, TRIP_NONE, ExhaustBanks, ExhaustParams
-from .profiles import large_diesel
+from cell.plant.base import Plant
+from cell.plant.composition import Composition
+from cell.plant.diesel import (
+    CYCLES,
+    RUNNING,
+    STOPPED,
+    TRIPPED,
+    DieselEngine,
+    DutyCycle,
+    EngineParams,
+    duty_cycle,
+)
+from cell.plant.backpressure import BANKS, TRIP_EXH_BP_LIMIT, TRIP_NONE, ExhaustBanks, ExhaustParams
+from cell.plant.large_diesel import large_diesel
 
 __all__ = [
     "BANKS", "CYCLES", "RUNNING", "STOPPED", "TRIPPED", "TRIP_EXH_BP_LIMIT", "TRIP_NONE",

@@ -16,7 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..errors import ConfigError
+from cell.core.errors import ConfigError
 
 
 class Plant:
@@ -36,7 +36,7 @@ class Plant:
 
     inputs: ClassVar[tuple[str, ...]] = ()
     outputs: ClassVar[tuple[str, ...]] = ()
-    #: crank-angle sample streams (:mod:`cell.streams`) the plant produces: samples that
+    #: crank-angle sample streams (:mod:`cell.runtime.samples`) the plant produces: samples that
     #: it hands out with :meth:`take_samples` rather than as held outputs
     streams: ClassVar[tuple[str, ...]] = ()
 

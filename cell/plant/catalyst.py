@@ -12,7 +12,7 @@ and the truth: ``SOX_1_TRUE`` .. ``SOX_3_TRUE`` (φ of each cell), ``SOX_TRUE`` 
 mean), ``OSC_TRUE`` (normalised to the fresh catalyst), ``LAMBDA_MID_TRUE`` and
 ``T_CAT_TRUE`` (the noise-free, lag-free values the sensors measure).
 
-The equations are :mod:`cell.plant.twc_model`'s, stepped with explicit Euler at the plant's
+The equations are :mod:`cell.plant.catalyst_model`'s, stepped with explicit Euler at the plant's
 100 Hz (the gas balances are solved exactly within each step). OSC is a parameter,
 normalised to the fresh catalyst (``--osc 0.6``: aged); it can drift slowly
 (``--osc-drift``, per hour of running) and steps to the value of a scenario command
@@ -39,9 +39,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ConfigError
-from .base import Plant, lag_factor
-from .twc_model import (
+from cell.core.errors import ConfigError
+from cell.plant.base import Plant, lag_factor
+from cell.plant.catalyst_model import (
     TWCKinetics,
     TWCThermal,
     efficiency,

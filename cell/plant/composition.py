@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 
-from ..errors import ConfigError
-from .base import Plant
+from cell.core.errors import ConfigError
+from cell.plant.base import Plant
 
 _EPS = 1e-9
 

@@ -48,8 +48,8 @@ import numpy as np
 from scipy.linalg import expm
 from scipy.signal import lfilter, lfilter_zi, ss2tf
 
-from ..errors import ConfigError
-from .base import Plant
+from cell.core.errors import ConfigError
+from cell.plant.base import Plant
 
 #: stoichiometric AFR of gasoline
 STOICH_AFR = 14.7

@@ -22,8 +22,8 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from ..errors import ConfigError
-from .base import Plant, lag_factor
+from cell.core.errors import ConfigError
+from cell.plant.base import Plant, lag_factor
 
 #: ``ENGINE_STATE`` values (DBC ``VAL_ 259 ENGINE_STATE``).
 STOPPED, RUNNING, TRIPPED = 0, 1, 2

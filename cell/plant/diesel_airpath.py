@@ -22,7 +22,7 @@ back-pressure valve therefore raises :math:`p_\mathrm{em}`.
 with the components of :mod:`cell.plant.airpath_parts`. :func:`airpath_rhs` is
 ``f(t, x, u, params)``: the plant integrates it with :class:`AirPathParams` carrying the
 engine's true, slowly drifting biases (:class:`Biases`); the observers of
-:mod:`cell.estimators.diesel_observers` integrate it with the nominal parameters (the
+:mod:`cell.estimators.diesel_airpath` integrate it with the nominal parameters (the
 *default model* of seed 002, §2), which is therefore wrong in the stationary way the
 paper's method compensates.
 
@@ -40,12 +40,23 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import fsolve
 
-from .airpath_parts import (
-    CP_AIR, CP_EXH, GAMMA_EXH, R_AIR, R_EXH, compressor_map_flow, compressor_outlet_temperature,
-    compressor_power, cylinder_flow, isothermal_volume, restriction_flow, shaft_acceleration,
-    turbine_flow, turbine_power,
+from cell.plant.airpath_parts import (
+    CP_AIR,
+    CP_EXH,
+    GAMMA_EXH,
+    R_AIR,
+    R_EXH,
+    compressor_map_flow,
+    compressor_outlet_temperature,
+    compressor_power,
+    cylinder_flow,
+    isothermal_volume,
+    restriction_flow,
+    shaft_acceleration,
+    turbine_flow,
+    turbine_power,
 )
-from .base import Plant, lag_factor
+from cell.plant.base import Plant, lag_factor
 
 #: Pa per mmH2O.
 PA_PER_MMH2O = 9.80665

@@ -49,10 +49,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..errors import ConfigError
-from . import airpath_parts as ap
-from .base import Plant, lag_factor
-from .si_engine import steady_exhaust_temp
+from cell.core.errors import ConfigError
+from cell.plant import airpath_parts as ap
+from cell.plant.base import Plant, lag_factor
+from cell.plant.si_engine import steady_exhaust_temp
 
 #: λ above which the engine runs without fuel (issue 8's fuel cut: λ = 10 stands for air).
 FUEL_CUT_LAMBDA = 5.0

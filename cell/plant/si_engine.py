@@ -40,8 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ConfigError
-from .base import Plant, lag_factor
+from cell.core.errors import ConfigError
+from cell.plant.base import Plant, lag_factor
 
 KMH = 1.0 / 3.6
 

@@ -34,15 +34,15 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-from .. import registry
-from ..errors import ConfigError
-from ..settings import Option, Settings
-from .base import Plant
-from .catalyst import Catalyst, CatalystParams
-from .composition import Composition
-from .cylinders import CylinderParams, Cylinders, parse_imbalance
-from .si_airpath import SIAirPath, SIAirPathParams
-from .si_engine import SI_CYCLES, SICycle, SIEngine, SIEngineParams
+from cell.core import registry
+from cell.core.errors import ConfigError
+from cell.core.settings import Option, Settings
+from cell.plant.base import Plant
+from cell.plant.catalyst import Catalyst, CatalystParams
+from cell.plant.composition import Composition
+from cell.plant.cylinders import CylinderParams, Cylinders, parse_imbalance
+from cell.plant.si_airpath import SIAirPath, SIAirPathParams
+from cell.plant.si_engine import SI_CYCLES, SICycle, SIEngine, SIEngineParams
 
 ENGINE_NAME = "si-turbo"
 

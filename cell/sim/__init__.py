@@ -5,7 +5,7 @@ Live, :func:`run` steps the engine's plants against ``time.monotonic()`` (real t
 time, and hands the frames it receives (demands, scenario commands) to the plants that
 consume them. Offline, :func:`write_log` writes the same frames to any log python-can writes
 (candump ``.log``, ``.asc``, ``.blf``, ``.csv``) as fast as it can, through the one lockstep
-loop (:mod:`cell.lockstep`). Only CAN frames pass between the simulator and the runtime
+loop (:mod:`cell.sim.lockstep`). Only CAN frames pass between the simulator and the runtime
 (DESIGN.md).
 """
 
@@ -23,14 +23,14 @@ from pathlib import Path
 import can
 from tqdm import tqdm
 
-from .. import dbc as dbc_mod
-from .. import registry
-from ..bus import CellBus, open_bus
-from ..dbc import CellDatabase
-from ..errors import ConfigError
-from ..plant.composition import Composition
-from ..settings import Settings, add_sim_options
-from .simulator import Simulator
+from cell.bus import dbc as dbc_mod
+from cell.core import registry
+from cell.bus.interface import CellBus, open_bus
+from cell.bus.dbc import CellDatabase
+from cell.core.errors import ConfigError
+from cell.plant.composition import Composition
+from cell.core.settings import Settings, add_sim_options
+from cell.sim.simulator import Simulator
 
 logger = logging.getLogger(__name__)
 
@@ -42,7 +42,7 @@ def build(settings: Settings, db: CellDatabase | None = None, t0: float = 0.0) -
     """The simulator of ``settings``' engine profile (default ``large-diesel``)."""
     s = settings.for_simulator()
     profile = registry.engine_profile(s.engine)
-    db = db or dbc_mod.load(s.dbc)
+    db = db or dbc_mod.load([*registry.DBC_FILES, *s.dbc])
     return Simulator(profile.build(s), db, t0)
 
 
@@ -55,7 +55,7 @@ def simulate(db: CellDatabase, plant: Composition | str = "rated", seed: int = 0
     ``valve=100``). Frames are stamped ``t0 + t`` for ``t`` = 0, dt, ... up to (not
     including) ``duration`` (default: the duty cycle's nominal length).
     """
-    from ..lockstep import Lockstep
+    from cell.sim.lockstep import Lockstep
 
     if isinstance(plant, str):
         plant = build(Settings.build({"duty": plant, "seed": seed, **options}, environ={}),
@@ -150,7 +150,7 @@ def write_log(path: str | Path, settings: Settings | str, seed: int = 0,
     length); every frame the simulator sends is written, truth included, so the log carries
     its own answer key. A tqdm bar shows progress over simulation time.
     """
-    from ..lockstep import Lockstep
+    from cell.sim.lockstep import Lockstep
 
     if isinstance(settings, str):
         settings = Settings.build({"duty": settings, "seed": seed, "duration": duration,
@@ -206,7 +206,7 @@ def main(args: argparse.Namespace, settings: Settings | None = None,
          stop_event: threading.Event | None = None) -> int:
     """Run ``testcell sim``; return the exit code.
 
-    Raises :class:`ConfigError` for bad options and :class:`~cell.errors.BusError` when the
+    Raises :class:`ConfigError` for bad options and :class:`~cell.core.errors.BusError` when the
     bus cannot be used; the caller prints either as one line.
     """
     if getattr(args, "list_engines", False):

@@ -15,10 +15,10 @@ import can
 import numpy as np
 from cantools.database.can import Message
 
-from ..dbc import CellDatabase, FrameDecodeError
-from ..errors import ConfigError
-from ..plant.composition import Composition
-from ..streams import StreamLayout, find_streams
+from cell.bus.dbc import CellDatabase, FrameDecodeError
+from cell.core.errors import ConfigError
+from cell.plant.composition import Composition
+from cell.runtime.samples import StreamLayout, find_streams
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@ from typing import Any
 
 from fastapi import APIRouter, Body
 
-from cell.registry import BlockFamily
+from cell.core.registry import BlockFamily
 
 from ..deps import CellDep
 from ..schemas import BlockOut

@@ -4,7 +4,7 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from cell.supervision import reset_trip, trip
+from cell.runtime.supervision import reset_trip, trip
 
 from ..deps import CellDep
 

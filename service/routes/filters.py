@@ -12,7 +12,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
 from cell.analysis.autotune import apply_refusals, autotune
-from cell.errors import ConfigError
+from cell.core.errors import ConfigError
 
 from ..deps import CellDep
 

@@ -1,6 +1,6 @@
 from fastapi import APIRouter
 
-from cell.supervision import assess
+from cell.runtime.supervision import assess
 
 from ..deps import CellDep
 from ..schemas import HealthOut

@@ -1,10 +1,10 @@
-"""``/scenario``: scenario commands to the simulator, as CAN frames (see :mod:`cell.scenario`)."""
+"""``/scenario``: scenario commands to the simulator, as CAN frames (see :mod:`cell.bus.scenario`)."""
 
 from typing import Any
 
 from fastapi import APIRouter, Body
 
-from cell.scenario import describe_frames, scenario_frames, scenario_keys
+from cell.bus.scenario import describe_frames, scenario_frames, scenario_keys
 
 from ..deps import CellDep
 

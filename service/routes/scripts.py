@@ -6,8 +6,8 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.responses import JSONResponse
 
-from cell.errors import ConfigError, ParamError
-from cell.formula import ScriptError
+from cell.core.errors import ConfigError, ParamError
+from cell.scripts import ScriptError
 
 from ..deps import CellDep
 

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from cell.blocks import Block, Param
-from cell.errors import ParamError
+from cell.runtime.blocks import Block, Param
+from cell.core.errors import ParamError
 
 
 def refused(param, value):

@@ -1,13 +1,13 @@
-"""Bus selection, echo dropping and the one-line errors of cell.bus."""
+"""Bus selection, echo dropping and the one-line errors of cell.bus.interface."""
 
 import subprocess
 
 import can
 import pytest
 
-from cell import bus as cellbus
-from cell.bus import MULTICAST_GROUP, BusSpec, CellBus, open_bus, resolve
-from cell.errors import BusError
+from cell.bus import interface as cellbus
+from cell.bus.interface import MULTICAST_GROUP, BusSpec, CellBus, open_bus, resolve
+from cell.core.errors import BusError
 
 
 def test_resolve_auto_prefers_vcan0(monkeypatch):

@@ -6,9 +6,9 @@ import math
 
 import pytest
 
-from cell.controller import PIController, controllers
-from cell.errors import ParamError
-from cell.runtime import Runtime
+from cell.control.backpressure import PIController, controllers
+from cell.core.errors import ParamError
+from cell.runtime.scheduler import Runtime
 
 R = 680.0
 

@@ -10,13 +10,13 @@ from pathlib import Path
 import can
 import pytest
 
-import cell.dbc as dbc_mod
-from cell import registry
-from cell.cli import main
-from cell.dbc import CellDatabase, cell_dbc_paths, default_dbc_path, load, resolve_dbc_paths
-from cell.errors import ConfigError
-from cell.estimators.filters import MovingAverage
-from cell.runtime import Runtime
+import cell.bus.dbc as dbc_mod
+from cell.core import registry
+from cell.app.cli import main
+from cell.bus.dbc import CellDatabase, cell_dbc_paths, default_dbc_path, load, resolve_dbc_paths
+from cell.core.errors import ConfigError
+from cell.estimators.backpressure import MovingAverage
+from cell.runtime.scheduler import Runtime
 
 DATA = Path(__file__).parent / "data"
 USER = DATA / "user.dbc"
@@ -96,8 +96,8 @@ def user_extra(request, tmp_path):
 def test_user_frames_decode_into_channels_and_feed_a_filter(user_extra, clean_registry, tmp_path):
     from fastapi.testclient import TestClient
 
-    from cell.context import Cell
-    from cell.tuning import TuningStore
+    from cell.app.cell import Cell
+    from cell.app.tuning import TuningStore
     from service.main import create_app
 
     db = load(user_extra)

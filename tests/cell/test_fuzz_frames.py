@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from cell.bus import open_bus
-from cell.context import Cell
-from cell.estimators.filters import native_filters
-from cell.live import LiveCell
-from cell.runtime import Runtime
+from cell.bus.interface import open_bus
+from cell.app.cell import Cell
+from cell.estimators.backpressure import native_filters
+from cell.app.live import LiveCell
+from cell.runtime.scheduler import Runtime
 from service.main import create_app
 
 N_FUZZ = 100_000

@@ -7,10 +7,10 @@ import time
 import can
 import pytest
 
-from cell.bus import BusSpec, CellBus, open_bus
-from cell.estimators.filters import native_filters
-from cell.live import Backoff, LiveCell
-from cell.runtime import Runtime
+from cell.bus.interface import BusSpec, CellBus, open_bus
+from cell.estimators.backpressure import native_filters
+from cell.app.live import Backoff, LiveCell
+from cell.runtime.scheduler import Runtime
 
 
 def wait(cond, timeout=10.0):
@@ -50,7 +50,7 @@ def test_a_bus_closed_while_stopping_logs_no_error(db, caplog):
     ref = []
     live = LiveCell(Runtime(db, native_filters()), CellBus(ClosingBus(ref), BusSpec("virtual", "x")))
     ref.append(live)
-    with caplog.at_level(logging.DEBUG, logger="cell.live"):
+    with caplog.at_level(logging.DEBUG, logger="cell.app.live"):
         live.start()
         assert wait(lambda: not live.running)
     assert [r for r in caplog.records if r.levelno >= logging.WARNING] == []
@@ -69,7 +69,7 @@ def test_bus_going_away_is_reopened_with_backoff_and_logged_once_per_change(db, 
             tx.send(db.encode("EXH_BP", {"EXH_BP_L": 600.0, "EXH_BP_R": 600.0}, time.time() - t0))
             time.sleep(0.005)
 
-    with caplog.at_level(logging.INFO, logger="cell.live"):
+    with caplog.at_level(logging.INFO, logger="cell.app.live"):
         live.start()
         try:
             send(100)

@@ -12,17 +12,17 @@ import sys
 import time
 from pathlib import Path
 
-from cell.estimators.filters import native_filters
-from cell.runtime import Runtime
-from cell.scripting import ScriptManager
-from cell.tuning import TuningStore
+from cell.estimators.backpressure import native_filters
+from cell.runtime.scheduler import Runtime
+from cell.scripts.manager import ScriptManager
+from cell.app.tuning import TuningStore
 
 KILLS = 50
 
 WRITER = r"""
 import sys
 from pathlib import Path
-from cell.tuning import TuningStore, write_text_atomic
+from cell.app.tuning import TuningStore, write_text_atomic
 
 folder = Path(sys.argv[1])
 store = TuningStore(folder / "tuning.json")
@@ -79,7 +79,7 @@ def test_tuning_file_corrupted_by_hand_is_moved_aside_and_defaults_used(db, tmp_
         path.write_text(bad)
         earlier = set(tmp_path.glob("tuning.json.corrupt-*"))
         store = TuningStore(path)
-        with caplog.at_level(logging.WARNING, logger="cell.tuning"):
+        with caplog.at_level(logging.WARNING, logger="cell.app.tuning"):
             assert store.load() == {}
         assert "unreadable" in store.problem and "starting from defaults" in store.problem
         assert str(path) in caplog.text

@@ -11,8 +11,14 @@ from matplotlib.figure import Figure
 
 from cell.analysis.report import plot_png
 from cell.analysis.series import Series
-from cell.experiments.closed_loop import (GRID_KI, GRID_KP, CaseResult, Summary, plot_figure10,
-                                          plot_gain_map)
+from cell.experiments.backpressure import (
+    GRID_KI,
+    GRID_KP,
+    CaseResult,
+    Summary,
+    plot_figure10,
+    plot_gain_map,
+)
 
 matplotlib.use("Agg")
 

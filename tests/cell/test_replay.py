@@ -6,11 +6,11 @@ import can
 import numpy as np
 import pytest
 
-from cell.cli import main
-from cell.errors import ConfigError
-from cell.estimators.filters import native_filters
-from cell.replay import replay
-from cell.runtime import Runtime
+from cell.app.cli import main
+from cell.core.errors import ConfigError
+from cell.estimators.backpressure import native_filters
+from cell.runtime.replay import replay
+from cell.runtime.scheduler import Runtime
 
 
 @pytest.fixture
@@ -136,7 +136,7 @@ def test_replay_reads_the_other_python_can_formats(log_file, tmp_path, suffix):
 
 
 def test_replay_with_scripts_runs_exactly_those(log_file, tmp_path):
-    from cell.formula import shipped_scripts
+    from cell.scripts import shipped_scripts
 
     fdv = tmp_path / "kalman.fdv"
     fdv.write_text(dict((n, t) for n, t, _ in shipped_scripts())["kalman.fdv"])

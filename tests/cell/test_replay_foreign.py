@@ -4,7 +4,7 @@ frames decoded and which IDs no DBC file defines; a log with nothing decodable f
 import can
 import pytest
 
-from cell.cli import main
+from cell.app.cli import main
 
 WRITERS = {".asc": can.ASCWriter, ".blf": can.BLFWriter, ".trc": can.TRCWriter}
 

@@ -3,10 +3,10 @@
 import can
 import pytest
 
-from cell.blocks import Block
-from cell.errors import ConfigError
-from cell.estimators.filters import MovingAverage, ScalarKalman, native_filters
-from cell.runtime import Rates, Runtime
+from cell.runtime.blocks import Block
+from cell.core.errors import ConfigError
+from cell.estimators.backpressure import MovingAverage, ScalarKalman, native_filters
+from cell.runtime.scheduler import Rates, Runtime
 
 
 def bp(db, t, left, right=None):

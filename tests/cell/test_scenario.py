@@ -1,4 +1,4 @@
-"""Scenario commands (cell/scenario.py): generic over the DBC, from the CLI and over HTTP."""
+"""Scenario commands (cell/bus/scenario.py): generic over the DBC, from the CLI and over HTTP."""
 
 from __future__ import annotations
 
@@ -8,13 +8,13 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from cell import cli
-from cell.bus import open_bus
-from cell.context import Cell
-from cell.dbc import load
-from cell.errors import ConfigError, ParamError
-from cell.runtime import Runtime
-from cell.scenario import parse_assignments, scenario_frames, scenario_keys
+from cell.app import cli
+from cell.bus.interface import open_bus
+from cell.app.cell import Cell
+from cell.bus.dbc import load
+from cell.core.errors import ConfigError, ParamError
+from cell.runtime.scheduler import Runtime
+from cell.bus.scenario import parse_assignments, scenario_frames, scenario_keys
 from service.main import create_app
 
 RIG = Path(__file__).parent / "data" / "scenario.dbc"

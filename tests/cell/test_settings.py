@@ -1,4 +1,4 @@
-"""One settings object per process (cell/settings.py): CLI over environment, unknown keys refused,
+"""One settings object per process (cell/core/settings.py): CLI over environment, unknown keys refused,
 and every simulator option handed from ``up`` to the simulator process."""
 
 from __future__ import annotations
@@ -8,9 +8,10 @@ import sys
 
 import pytest
 
-from cell import cli, sim
-from cell.errors import ConfigError
-from cell.settings import Settings
+from cell.app import cli
+from cell import sim
+from cell.core.errors import ConfigError
+from cell.core.settings import Settings
 
 
 def test_defaults_and_the_simulator_defaults():

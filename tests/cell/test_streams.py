@@ -8,11 +8,11 @@ import can
 import numpy as np
 import pytest
 
-from cell.blocks import Block
-from cell.dbc import load
-from cell.errors import ConfigError
-from cell.runtime import Runtime
-from cell.streams import StreamLayout, StreamTracker, find_streams
+from cell.runtime.blocks import Block
+from cell.bus.dbc import load
+from cell.core.errors import ConfigError
+from cell.runtime.scheduler import Runtime
+from cell.runtime.samples import StreamLayout, StreamTracker, find_streams
 
 
 @pytest.fixture(scope="module")
@@ -201,11 +201,11 @@ def test_live_on_a_bus_as_offline(db):
     import uuid
 
     from cell import sim as simmod
-    from cell.bus import open_bus
-    from cell.estimators.imbalance import imbalance_observers
-    from cell.live import LiveCell
-    from cell.lockstep import Lockstep
-    from cell.settings import Settings
+    from cell.bus.interface import open_bus
+    from cell.estimators.cylinders import imbalance_observers
+    from cell.app.live import LiveCell
+    from cell.sim.lockstep import Lockstep
+    from cell.core.settings import Settings
 
     s = Settings.build({"engine": "si-turbo", "duty": "steady", "imbalance": "4:-0.25",
                         "duration": 2.0}, environ={}).for_simulator()

@@ -2,11 +2,11 @@
 
 import pytest
 
-from cell.estimators.filters import native_filters
-from cell.formula.fdv import FdvBlock
-from cell.runtime import Runtime
-from cell.scripting import ScriptManager
-from cell.units import key, spell, spellings
+from cell.estimators.backpressure import native_filters
+from cell.scripts.fdv import FdvBlock
+from cell.runtime.scheduler import Runtime
+from cell.scripts.manager import ScriptManager
+from cell.runtime.units import key, spell, spellings
 
 
 @pytest.fixture(scope="module")

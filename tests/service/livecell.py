@@ -9,13 +9,15 @@ import os
 import threading
 from dataclasses import replace
 
-from cell import registry, sim
-from cell.bus import open_bus, resolve
-from cell.cli import build_runtime
-from cell.context import Cell
-from cell.live import LiveCell
-from cell.settings import Settings
-from cell.tuning import TuningStore
+from cell import app as cell_app
+
+from cell import sim
+from cell.bus.interface import open_bus, resolve
+from cell.app.assemble import build_runtime
+from cell.app.cell import Cell
+from cell.app.live import LiveCell
+from cell.core.settings import Settings
+from cell.app.tuning import TuningStore
 from service.main import create_app
 
 from .served import served
@@ -27,7 +29,7 @@ _channels = itertools.count()
 def live_cell(tmp_path, routers=(), **options):
     """Yield ``(base_url, cell)`` of a cell running ``Settings(**options)`` on a virtual bus
     (with ``routers`` added to its app)."""
-    registry.load_plugins()
+    cell_app.load()
     channel = f"test-{os.getpid()}-{next(_channels)}"
     settings = replace(Settings(**options), bus=f"virtual:{channel}",
                        state=tmp_path / "tuning.json").for_simulator()

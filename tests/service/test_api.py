@@ -6,10 +6,10 @@ import math
 import pytest
 from fastapi.testclient import TestClient
 
-from cell.context import Cell
-from cell.estimators.filters import native_filters
-from cell.runtime import Runtime
-from cell.tuning import TuningStore
+from cell.app.cell import Cell
+from cell.estimators.backpressure import native_filters
+from cell.runtime.scheduler import Runtime
+from cell.app.tuning import TuningStore
 from service.main import create_app
 
 
@@ -192,7 +192,7 @@ def test_page_and_openapi(client):
 
 
 def test_controllers_are_tunable_and_keep_off_the_bus_until_enabled(db, tmp_path):
-    from cell.controller import controllers
+    from cell.control.backpressure import controllers
 
     rt = Runtime(db, [*native_filters(), *controllers("kalman")])
     store = TuningStore(tmp_path / "t.json")
@@ -264,7 +264,7 @@ def test_autotune_estimates_from_history_and_applies_only_on_request(db, tmp_pat
 
 
 def test_restart_restores_controller_tuning_but_never_enables_the_loop(db, tmp_path):
-    from cell.controller import controllers
+    from cell.control.backpressure import controllers
 
     path = tmp_path / "tuning.json"
     rt = Runtime(db, controllers("kalman"))

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from cell.context import Cell
-from cell.estimators.filters import native_filters
-from cell.runtime import Runtime
-from cell.tuning import TuningStore
+from cell.app.cell import Cell
+from cell.estimators.backpressure import native_filters
+from cell.runtime.scheduler import Runtime
+from cell.app.tuning import TuningStore
 from service.main import create_app
 
 

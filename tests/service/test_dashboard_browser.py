@@ -24,7 +24,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from cell import registry
+from cell import app
+from cell.core import registry
 
 from .livecell import live_cell
 
@@ -171,9 +172,9 @@ def test_a_channel_whose_frames_stop_shows_stale_in_the_table(chromium, db):
     """A runtime fed by the test: the frames stop, bus time goes on, the table says stale."""
     import math
 
-    from cell.context import Cell
-    from cell.estimators.filters import native_filters
-    from cell.runtime import Runtime
+    from cell.app.cell import Cell
+    from cell.estimators.backpressure import native_filters
+    from cell.runtime.scheduler import Runtime
     from service.main import create_app
 
     from .served import served
@@ -357,7 +358,7 @@ def test_screenshot_is_saved_as_an_artifact(diesel):
 @pytest.fixture
 def toy_plugin(monkeypatch):
     """The test plugin registered in this process; every registry table restored afterwards."""
-    registry.ensure_loaded()
+    app.load()
     for table in ("ENGINES", "FAMILIES", "BLOCK_SETS", "EXPERIMENTS"):
         monkeypatch.setattr(registry, table, dict(getattr(registry, table)))
     monkeypatch.setattr(registry, "DBC_FILES", list(registry.DBC_FILES))

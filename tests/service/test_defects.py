@@ -12,15 +12,15 @@ import math
 import can
 from fastapi.testclient import TestClient
 
-from cell import registry
-from cell.context import Cell
-from cell.estimators.filters import native_filters
+from cell.core import registry
+from cell.app.cell import Cell
+from cell.estimators.backpressure import native_filters
 from cell.plant import TRIPPED
-from cell.runtime import Runtime
-from cell.scripting import ScriptManager
-from cell.settings import Settings
+from cell.runtime.scheduler import Runtime
+from cell.scripts.manager import ScriptManager
+from cell.core.settings import Settings
 from cell.sim import build as build_sim
-from cell.tuning import TuningStore
+from cell.app.tuning import TuningStore
 from service.main import create_app
 
 

@@ -10,10 +10,10 @@ import can
 import pytest
 from fastapi.testclient import TestClient
 
-from cell.blocks import Block
-from cell.context import Cell
-from cell.estimators.filters import native_filters
-from cell.runtime import Runtime
+from cell.runtime.blocks import Block
+from cell.app.cell import Cell
+from cell.estimators.backpressure import native_filters
+from cell.runtime.scheduler import Runtime
 from service.main import create_app
 
 LINE = re.compile(r'^([a-zA-Z_:][a-zA-Z0-9_:]*)(\{(?:[a-zA-Z_][a-zA-Z0-9_]*="(?:[^"\\]|\\.)*",?)*\})? (\S+)$')
@@ -124,9 +124,9 @@ def test_websocket_clients_are_counted_while_connected(db):
 
 
 def test_a_bus_of_random_ids_keeps_the_counts_bounded(db, monkeypatch):
-    import cell.runtime
+    import cell.runtime.scheduler as runtime
 
-    monkeypatch.setattr(cell.runtime, "MAX_COUNTED_IDS", 8)
+    monkeypatch.setattr(runtime, "MAX_COUNTED_IDS", 8)
     rt = Runtime(db)
     for k in range(40):  # 40 distinct unknown IDs
         rt.ingest(can.Message(timestamp=k * 0.01, arbitration_id=0x10000 + k, data=b"", is_extended_id=True))

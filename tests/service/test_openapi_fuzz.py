@@ -17,10 +17,10 @@ from schemathesis.specs.openapi.checks import (  # noqa: E402
     status_code_conformance,
 )
 
-from cell.cli import build_runtime  # noqa: E402
-from cell.context import Cell  # noqa: E402
-from cell.settings import Settings  # noqa: E402
-from cell.tuning import TuningStore  # noqa: E402
+from cell.app.cli import build_runtime  # noqa: E402
+from cell.app.cell import Cell  # noqa: E402
+from cell.core.settings import Settings  # noqa: E402
+from cell.app.tuning import TuningStore  # noqa: E402
 from service.main import create_app  # noqa: E402
 
 

@@ -6,11 +6,11 @@ import math
 import pytest
 from fastapi.testclient import TestClient
 
-from cell.context import Cell
-from cell.estimators.filters import native_filters
-from cell.runtime import Runtime
-from cell.scripting import ScriptManager
-from cell.tuning import TuningStore
+from cell.app.cell import Cell
+from cell.estimators.backpressure import native_filters
+from cell.runtime.scheduler import Runtime
+from cell.scripts.manager import ScriptManager
+from cell.app.tuning import TuningStore
 from service.main import create_app
 
 COUNTER = """

@@ -9,14 +9,14 @@ import pytest
 from fastapi import FastAPI, WebSocket
 from fastapi.testclient import TestClient
 
-from cell.cli import main
-from cell.context import Cell
-from cell.errors import ConfigError
-from cell.estimators.filters import native_filters
-from cell.runtime import Runtime
-from cell.scripting import ScriptManager
-from cell.settings import Settings
-from cell.tuning import TuningStore
+from cell.app.cli import main
+from cell.app.cell import Cell
+from cell.core.errors import ConfigError
+from cell.estimators.backpressure import native_filters
+from cell.runtime.scheduler import Runtime
+from cell.scripts.manager import ScriptManager
+from cell.core.settings import Settings
+from cell.app.tuning import TuningStore
 from service import security as sec_mod
 from service.main import create_app
 from service.security import Security, check_bind, websocket_may_command

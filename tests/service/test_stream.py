@@ -19,10 +19,10 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
-from cell.context import Cell
-from cell.estimators.filters import native_filters
-from cell.runtime import Runtime
-from cell.scripting import ScriptManager
+from cell.app.cell import Cell
+from cell.estimators.backpressure import native_filters
+from cell.runtime.scheduler import Runtime
+from cell.scripts.manager import ScriptManager
 from service.main import create_app
 from service.stream import BACKLOG, RING
 

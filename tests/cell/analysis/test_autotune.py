@@ -16,8 +16,8 @@ from cell.analysis import autotune as at
 from cell.analysis import sweep as sw
 from cell.analysis.scores import score_estimates
 from cell.analysis.series import channel_series
-from cell.errors import ConfigError
-from cell.estimators.filters import kalman_bank
+from cell.core.errors import ConfigError
+from cell.estimators.backpressure import kalman_bank
 from cell.sim import write_log
 
 #: A fine grid: Q/R from 1e-4 to 1e2 at 40 points per decade (P0 = 1, as the runtime).

@@ -5,7 +5,7 @@ import pytest
 
 from cell.analysis import scores
 from cell.analysis.series import Series
-from cell.estimators.filters import kalman_bank
+from cell.estimators.backpressure import kalman_bank
 
 
 def test_nis_and_whiteness_of_a_consistent_filter():

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from cell.analysis import series as se
-from cell.errors import ConfigError, LogFormatError
-from cell.estimators.filters import kalman_bank, native_filters
+from cell.core.errors import ConfigError, LogFormatError
+from cell.estimators.backpressure import kalman_bank, native_filters
 from cell.sim import simulate
-from cell.runtime import Runtime
+from cell.runtime.scheduler import Runtime
 
 
 @pytest.fixture(scope="module")

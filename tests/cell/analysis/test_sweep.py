@@ -8,7 +8,7 @@ import pytest
 
 from cell.analysis import sweep as sw
 from cell.analysis.series import Series
-from cell.errors import ConfigError
+from cell.core.errors import ConfigError
 from cell.sim import write_log
 
 

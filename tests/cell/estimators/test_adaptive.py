@@ -4,9 +4,9 @@ way tests/cell/test_filter_quality.py scores the paper's two filters."""
 import numpy as np
 import pytest
 
-from cell.estimators.adaptive import AdaptiveFilter, adaptive_filters
-from cell.errors import ParamError
-from cell.estimators.filters import native_filters
+from cell.estimators.backpressure_adaptive import AdaptiveFilter, adaptive_filters
+from cell.core.errors import ParamError
+from cell.estimators.backpressure import native_filters
 from cell.plant import duty_cycle
 
 from .transient import run_cycle, time_to_63

@@ -1,4 +1,4 @@
-"""The air-path observer (cell/estimators/airpath.py): its gains, schedule, tuning and runtime."""
+"""The air-path observer (cell/estimators/si_airpath.py): its gains, schedule, tuning and runtime."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from cell.errors import ConfigError, ParamError
-from cell.estimators.airpath import (
+from cell.core.errors import ConfigError, ParamError
+from cell.estimators.si_airpath import (
     DEFAULT_TABLE,
     MEASUREMENTS,
     OUTPUTS,
@@ -140,10 +140,10 @@ def test_another_tick_period_gets_gains_solved_for_it(table):
 
 
 def test_observer_runs_in_the_runtime_and_puts_its_estimates_on_the_bus():
-    from cell.dbc import load
-    from cell.lockstep import Lockstep
+    from cell.bus.dbc import load
+    from cell.sim.lockstep import Lockstep
     from cell.plant.si_turbo import si_turbo
-    from cell.runtime import Rates, Runtime
+    from cell.runtime.scheduler import Rates, Runtime
     from cell.sim.simulator import Simulator
 
     db = load()

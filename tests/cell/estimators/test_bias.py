@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 
-from cell.estimators import bias
+from cell.estimators import augmentation as bias
 from cell.estimators.core import Model, numerical_jacobian, steady_state_gain
 
 C2 = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])

@@ -5,23 +5,28 @@ import json
 import numpy as np
 import pytest
 
-from cell import registry
-from cell.dbc import load
-from cell.errors import ConfigError
-from cell.estimators.diesel_observers import (
-    SHIPPED_DESIGN, airpath_observers, augmented_observer, default_observer, load_design,
+from cell import app
+from cell.core import registry
+from cell.bus.dbc import load
+from cell.core.errors import ConfigError
+from cell.estimators.diesel_airpath import (
+    SHIPPED_DESIGN,
+    airpath_observers,
+    augmented_observer,
+    default_observer,
+    load_design,
 )
-from cell.lockstep import Lockstep
+from cell.sim.lockstep import Lockstep
 from cell.plant.diesel import DutyCycle
 from cell.plant.diesel_airpath import NO_BIAS
-from cell.plant.profiles import large_diesel
-from cell.runtime import Runtime
-from cell.settings import Settings
+from cell.plant.large_diesel import large_diesel
+from cell.runtime.scheduler import Runtime
+from cell.core.settings import Settings
 from cell.sim.simulator import Simulator
 
 
 def test_block_set_of_large_diesel_has_both_observers_on_the_dbc():
-    registry.ensure_loaded()
+    app.load()
     bs = registry.BLOCK_SETS["seed002-airpath"]
     assert bs.applies_to("large-diesel") and not bs.applies_to("toy")
     blocks = bs.build(Settings.build({}, environ={}))

@@ -9,7 +9,7 @@ bus time), go through the same runtime as the live cell, and are scored against
 import numpy as np
 import pytest
 
-from cell.estimators.filters import native_filters
+from cell.estimators.backpressure import native_filters
 from cell.plant import duty_cycle
 
 from .transient import run_cycle, time_to_63

@@ -8,8 +8,8 @@ import pytest
 from filterpy.kalman import KalmanFilter
 
 from cell.analysis.sweep import table2
-from cell.errors import ConfigError, ParamError
-from cell.estimators.filters import (
+from cell.core.errors import ConfigError, ParamError
+from cell.estimators.backpressure import (
     MAX_SAMPLES,
     MovingAverage,
     ScalarKalman,

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from cell.cli import build_runtime
-from cell.context import Cell
-from cell.estimators.imbalance import RodInversion, UegoInversion
-from cell.lockstep import Lockstep
-from cell.settings import Settings
+from cell.app.cli import build_runtime
+from cell.app.cell import Cell
+from cell.estimators.cylinders import RodInversion, UegoInversion
+from cell.sim.lockstep import Lockstep
+from cell.core.settings import Settings
 from cell.sim import build as build_sim
-from cell.tuning import TuningStore
+from cell.app.tuning import TuningStore
 from service.main import create_app
 
 

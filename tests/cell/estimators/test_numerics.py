@@ -15,10 +15,10 @@ from array import array
 import numpy as np
 import pytest
 
-from cell.blocks import Block
+from cell.runtime.blocks import Block
 from cell.estimators.core import Diverged, KalmanCore
-from cell.estimators.filters import ScalarKalman
-from cell.runtime import Runtime
+from cell.estimators.backpressure import ScalarKalman
+from cell.runtime.scheduler import Runtime
 
 SCALAR_STEPS = 1_000_000
 CORE_STEPS = int(os.environ.get("TESTCELL_NUMERICS_STEPS", "20000"))
@@ -152,7 +152,7 @@ def test_no_nan_or_inf_reaches_the_bus_it_is_withheld_and_flagged(db):
 
 
 def test_a_runtime_filter_fed_a_value_beyond_float_range_resets_and_flags(db):
-    from cell.estimators.filters import native_filters
+    from cell.estimators.backpressure import native_filters
 
     rt = Runtime(db, native_filters())
     for i in range(300):

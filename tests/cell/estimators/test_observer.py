@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
-from cell.channels import INVALID, OK
-from cell.errors import ParamError
+from cell.runtime.channels import INVALID, OK
+from cell.core.errors import ParamError
 from cell.estimators.core import GainSchedule, Model, bounds
 from cell.estimators.observer import ObserverBlock
-from cell.runtime import Runtime
+from cell.runtime.scheduler import Runtime
 
 TAU = 0.8
 

@@ -9,8 +9,14 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from cell.estimators.periodic import (LinearPeriodic, PeriodicObserver, cascade, design_full,
-                                      design_partial, single)
+from cell.estimators.periodic import (
+    LinearPeriodic,
+    PeriodicObserver,
+    cascade,
+    design_full,
+    design_partial,
+    single,
+)
 
 STEP = math.radians(6.0)
 

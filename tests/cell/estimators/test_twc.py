@@ -1,4 +1,4 @@
-"""The catalyst's dual EKF block (cell/estimators/twc.py): its Jacobians, its robustness and
+"""The catalyst's dual EKF block (cell/estimators/catalyst.py): its Jacobians, its robustness and
 its place in the runtime and the service."""
 
 from __future__ import annotations
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from cell import cli
-from cell.context import Cell
-from cell.dbc import load
-from cell.errors import ParamError
+from cell.app import cli
+from cell.app.cell import Cell
+from cell.bus.dbc import load
+from cell.core.errors import ParamError
 from cell.estimators.core import numerical_jacobian
-from cell.estimators.twc import (
+from cell.estimators.catalyst import (
     MODEL_KINETICS,
     Operating,
     TWCObserver,
@@ -24,10 +24,10 @@ from cell.estimators.twc import (
     model_g,
     predict,
 )
-from cell.plant.twc_model import TWCKinetics
-from cell.runtime import Runtime
-from cell.settings import Settings
-from cell.tuning import TuningStore
+from cell.plant.catalyst_model import TWCKinetics
+from cell.runtime.scheduler import Runtime
+from cell.core.settings import Settings
+from cell.app.tuning import TuningStore
 from service.main import create_app
 
 RNG = np.random.default_rng(7)
@@ -255,7 +255,7 @@ def test_osc_init_is_a_setting_of_up_and_replay(tmp_path):
                                               environ={}))[0].blocks
     assert blocks["twc"].osc_init == 0.7 and s.osc_init == 0.7
     assert Settings.build({}, environ={"TESTCELL_OSC_INIT": "1.4"}).osc_init == 1.4
-    from cell.errors import ConfigError
+    from cell.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"--osc-init must be in \(0.05, 4\]"):
         Settings.build({"osc_init": 9.0}, environ={})

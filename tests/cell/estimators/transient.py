@@ -3,8 +3,8 @@
 import numpy as np
 
 from cell.sim import simulate
-from cell.lockstep import feed
-from cell.runtime import Runtime
+from cell.sim.lockstep import feed
+from cell.runtime.scheduler import Runtime
 
 
 def run_cycle(db, blocks, names, seed):

@@ -1,4 +1,4 @@
-"""Seed 003's acceptance on the emulated engine (cell/experiments/airpath.py), against truth.
+"""Seed 003's acceptance on the emulated engine (cell/experiments/si_airpath.py), against truth.
 
 One throttle-steps run (twelve step cases at 1800 rpm, 104 s) is shared by the tests.
 """
@@ -10,8 +10,8 @@ import json
 import numpy as np
 import pytest
 
-from cell.cli import main as cli
-from cell.experiments.airpath import lowpass, run_experiment
+from cell.app.cli import main as cli
+from cell.experiments.si_airpath import lowpass, run_experiment
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +74,7 @@ def test_cac_error_is_reported_and_the_augmentation_reduces_it(result):
 
 
 def test_experiment_command_writes_figures_and_json(tmp_path, capsys, monkeypatch, result):
-    import cell.experiments.airpath as mod
+    import cell.experiments.si_airpath as mod
 
     monkeypatch.setattr(mod, "run_experiment", lambda *a, **k: result)
     assert cli(["experiment", "airpath", "--out", str(tmp_path), "--json", "--quiet"]) == 0

@@ -1,4 +1,4 @@
-"""``testcell design airpath`` (cell/experiments/airpath_design.py): the gain table from a log,
+"""``testcell design airpath`` (cell/design/si_airpath.py): the gain table from a log,
 and the refusal of logs that lack what the design needs."""
 
 from __future__ import annotations
@@ -9,17 +9,12 @@ import can
 import numpy as np
 import pytest
 
-from cell.cli import main as cli
-from cell.dbc import load
-from cell.errors import ConfigError
-from cell.estimators.airpath import MEASUREMENTS, GainTable, discrete_gain
-from cell.experiments.airpath_design import (
-    Q_FLOOR,
-    R_FLOOR,
-    design_log,
-    read_channels,
-)
-from cell.lockstep import Lockstep
+from cell.app.cli import main as cli
+from cell.bus.dbc import load
+from cell.core.errors import ConfigError
+from cell.estimators.si_airpath import MEASUREMENTS, GainTable, discrete_gain
+from cell.design.si_airpath import Q_FLOOR, R_FLOOR, design_log, read_channels
+from cell.sim.lockstep import Lockstep
 from cell.plant.si_airpath import MODEL_PARAMS, steady_state
 from cell.plant.si_engine import _holds
 from cell.plant.si_turbo import si_turbo

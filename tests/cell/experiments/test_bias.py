@@ -8,10 +8,10 @@ import can
 import numpy as np
 import pytest
 
-from cell.errors import ConfigError
-from cell.estimators.bias import largest_angle_deg
-from cell.estimators.diesel_observers import load_design
-from cell.experiments import bias as B
+from cell.core.errors import ConfigError
+from cell.estimators.augmentation import largest_angle_deg
+from cell.estimators.diesel_airpath import load_design
+from cell.experiments import diesel_airpath as B
 from cell.plant.diesel import DutyCycle
 from cell.sim import write_log
 

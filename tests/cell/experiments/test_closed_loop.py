@@ -10,11 +10,11 @@ import json
 
 import pytest
 
-from cell import experiments
-from cell.cli import main as cli_main
-from cell.errors import ConfigError
-from cell.experiments import closed_loop as experiment
-from cell.experiments.closed_loop import closed_loop, compare
+from cell.app.commands import EXPERIMENTS
+from cell.app.cli import main as cli_main
+from cell.core.errors import ConfigError
+from cell.experiments import backpressure as experiment
+from cell.experiments.backpressure import closed_loop, compare
 
 SEEDS = 5
 
@@ -64,14 +64,14 @@ def test_settling_definition():
 
 def parse(*argv):
     p = argparse.ArgumentParser()
-    experiments.add_arguments(p)
+    EXPERIMENTS.add_arguments(p)
     return p.parse_args(["closed-loop", *argv])
 
 
 def test_json_fields_and_files(tmp_path, capsys):
     args = parse("--feedback", "raw,kalman", "--seeds", "2", "--duration", "30", "--json",
                  "--out", str(tmp_path), "--quiet", "--jobs", "1")
-    assert experiments.main(args) == 0
+    assert EXPERIMENTS.main(args) == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines() if x.strip()]
     assert [d["feedback"] for d in lines] == ["raw", "kalman"]
     for d in lines:
@@ -96,7 +96,7 @@ def test_json_fields_and_files(tmp_path, capsys):
 def test_bad_options_name_the_option(tmp_path, argv, option):
     args = parse(*argv, "--out", str(tmp_path / "out"))
     with pytest.raises(ConfigError, match=option):
-        experiments.main(args)
+        EXPERIMENTS.main(args)
     assert not (tmp_path / "out").exists()  # refused before any work
 
 

@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from cell.dbc import load
-from cell.experiments.imbalance import Case, lossy_wire, run_case, xcorr_lag
+from cell.bus.dbc import load
+from cell.experiments.cylinders import Case, lossy_wire, run_case, xcorr_lag
 from cell.plant.cylinders import N_CYL
 
 T_ON, DURATION = 1.5, 3.5
@@ -148,7 +148,7 @@ def test_json_line_per_case(cyl1_rich):
 def _args(*argv):
     import argparse
 
-    from cell.experiments.imbalance import add_arguments
+    from cell.experiments.cylinders import add_arguments
 
     p = argparse.ArgumentParser()
     add_arguments(p)
@@ -163,15 +163,15 @@ def _args(*argv):
     (("--duration", "1"), "--duration must be at least 2.5 s"),
 ])
 def test_bad_experiment_options_are_refused_before_any_work(argv, needle):
-    from cell.errors import ConfigError
-    from cell.experiments.imbalance import cases_from_args
+    from cell.core.errors import ConfigError
+    from cell.experiments.cylinders import cases_from_args
 
     with pytest.raises(ConfigError, match=needle.replace(".", r"\.")):
         cases_from_args(_args(*argv))
 
 
 def test_the_command_prints_json_lines_and_writes_the_figures(tmp_path, capsys):
-    from cell.cli import main
+    from cell.app.cli import main
 
     rc = main(["experiment", "imbalance", "--cylinder", "2", "--offset", "-0.25", "--duration", "3",
                "--json", "--out", str(tmp_path)])

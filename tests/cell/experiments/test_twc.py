@@ -1,7 +1,7 @@
 """Seed 000's acceptance on the emulated cell: the dual EKF against the simulator's truth.
 
 One FTP-like drive per catalyst is recorded through the simulator, the DBC frames and the
-runtime (:func:`cell.experiments.twc.record`), module-scoped, and every observer case runs
+runtime (:func:`cell.experiments.catalyst.record`), module-scoped, and every observer case runs
 over it offline, as the runtime would step it (a test checks that equivalence).
 """
 
@@ -12,16 +12,9 @@ import json
 import numpy as np
 import pytest
 
-from cell import cli
-from cell.estimators.twc import Q4_DEFAULT, TWCObserver
-from cell.experiments.twc import (
-    convergence_time,
-    naive_sox,
-    observe,
-    reach_time,
-    record,
-    rmse,
-)
+from cell.app import cli
+from cell.estimators.catalyst import Q4_DEFAULT, TWCObserver
+from cell.experiments.catalyst import convergence_time, naive_sox, observe, reach_time, record, rmse
 
 
 @pytest.fixture(scope="module")
@@ -113,8 +106,8 @@ def test_offline_observation_is_what_the_runtime_block_computes():
 
 
 def test_the_model_mismatch_is_configurable(fresh):
-    from cell.experiments.twc import parse_mismatch
-    from cell.plant.twc_model import TWCKinetics
+    from cell.experiments.catalyst import parse_mismatch
+    from cell.plant.catalyst_model import TWCKinetics
 
     k = parse_mismatch("A1=0.5,y_c=1.1")
     assert k.A1 == 0.5 * TWCKinetics().A1 and k.y_c == pytest.approx(1.1 * TWCKinetics().y_c)

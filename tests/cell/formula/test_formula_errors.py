@@ -2,7 +2,7 @@
 
 import pytest
 
-from cell.formula import CyflexBlock, ScriptError, load_script
+from cell.scripts import CyflexBlock, ScriptError, load_script
 
 F = "[formulas]\npublic y\n"  # a .fdv prefix: the statement under test is on line 3
 L = "x none 3 0 MED OFF 1.0\n"  # a .labels header: the expression under test is on line 2

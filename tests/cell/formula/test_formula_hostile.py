@@ -4,9 +4,9 @@ import math
 
 import pytest
 
-from cell.formula import FdvBlock, ScriptError, load_script
-from cell.formula.expr import MAX_DEPTH
-from cell.formula.source import MAX_SOURCE_CHARS
+from cell.scripts import FdvBlock, ScriptError, load_script
+from cell.scripts.expr import MAX_DEPTH
+from cell.scripts.source import MAX_SOURCE_CHARS
 
 F = "[formulas]\npublic y\n"
 LAB = "y none 3 0 MED OFF 1.0\n"

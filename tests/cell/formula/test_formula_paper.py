@@ -3,15 +3,15 @@
 The independent reference is the listings' own arithmetic written out by hand below.
 As printed, both listings compute the gain from the previous posterior P, before Q is
 added (Q only enters through P_prev); the reference reproduces that quirk, and the test
-reports how far it lands from the textbook filter (cell.estimators.filters.ScalarKalman).
+reports how far it lands from the textbook filter (cell.estimators.backpressure.ScalarKalman).
 """
 
 import random
 
 import pytest
 
-from cell.estimators.filters import ScalarKalman
-from cell.formula import CyflexBlock, FdvBlock, ScriptError, load_script, shipped_scripts
+from cell.estimators.backpressure import ScalarKalman
+from cell.scripts import CyflexBlock, FdvBlock, ScriptError, load_script, shipped_scripts
 
 from .listings import FDV, FIG2_R, FIG3, FIG3_PRINTED
 

@@ -5,7 +5,7 @@ import math
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from cell.formula import FdvBlock
+from cell.scripts import FdvBlock
 
 VARS = ("a", "b", "c")
 UNARY = ("abs", "sqrt", "exp", "log", "log10", "sin", "cos", "tan")

@@ -5,8 +5,8 @@ import math
 
 import pytest
 
-from cell.errors import ParamError
-from cell.formula import (
+from cell.core.errors import ParamError
+from cell.scripts import (
     DIALECTS,
     CyflexBlock,
     FdvBlock,
@@ -15,7 +15,7 @@ from cell.formula import (
     load_script,
     shipped_scripts,
 )
-from cell.runtime import Rates, Runtime
+from cell.runtime.scheduler import Rates, Runtime
 
 from .listings import FDV
 

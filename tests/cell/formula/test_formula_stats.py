@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from cell.errors import ParamError
-from cell.formula import SUFFIXES, RunningStats
+from cell.core.errors import ParamError
+from cell.scripts import SUFFIXES, RunningStats
 
 
 def numpy_stats(ts, vs, rate):

@@ -6,11 +6,11 @@ from importlib.resources import files
 import numpy as np
 import pytest
 
-from cell.estimators.filters import native_filters
-from cell.formula import load_script
-from cell.runtime import Runtime
+from cell.estimators.backpressure import native_filters
+from cell.scripts import load_script
+from cell.runtime.scheduler import Runtime
 
-TEXT = files("cell.formula").joinpath("examples/pi_controller.fdv").read_text()
+TEXT = files("cell.scripts").joinpath("examples/pi_controller.fdv").read_text()
 
 
 def reference_pi(measurements, kp=0.005, ki=0.013, dt=0.1, sp=680.0, rate=5.0):
@@ -51,8 +51,8 @@ def test_pi_script_matches_a_plain_pi_and_puts_demand_on_the_bus(db):
 
 
 def test_pi_script_and_native_controllers_cannot_both_drive_the_valve(db):
-    from cell.controller import controllers
-    from cell.errors import ConfigError
+    from cell.control.backpressure import controllers
+    from cell.core.errors import ConfigError
 
     rt = Runtime(db, [*native_filters(), *controllers("kalman")])
     with pytest.raises(ConfigError, match="VALVE_DEMAND_L.*PI_L"):

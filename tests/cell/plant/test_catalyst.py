@@ -9,13 +9,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cell.dbc import load
-from cell.errors import ConfigError
+from cell.bus.dbc import load
+from cell.core.errors import ConfigError
 from cell.plant.catalyst import Catalyst, CatalystParams, SensorParams
 from cell.plant.composition import Composition
 from cell.plant.si_turbo import si_turbo
-from cell.plant.twc_model import TWCKinetics, TWCThermal
-from cell.scenario import scenario_frames
+from cell.plant.catalyst_model import TWCKinetics, TWCThermal
+from cell.bus.scenario import scenario_frames
 from cell.sim.simulator import Simulator
 
 
@@ -146,7 +146,7 @@ def test_a_scenario_frame_steps_osc_in_the_simulator():
 
 
 def test_osc_options_on_the_command_line(tmp_path, capsys):
-    from cell import cli
+    from cell.app import cli
 
     log = tmp_path / "aged.log"
     assert cli.main(["sim", "--engine", "si-turbo", "--osc", "0.6", "--duration", "1",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from cell.errors import ConfigError
+from cell.core.errors import ConfigError
 from cell.plant import Composition, Plant
 
 

@@ -9,18 +9,18 @@ import numpy as np
 import pytest
 from scipy.signal import lsim
 
-from cell.dbc import CellDatabase, dbc_dir
-from cell.errors import ConfigError
-from cell.lockstep import Lockstep
+from cell.bus.dbc import CellDatabase, dbc_dir
+from cell.core.errors import ConfigError
+from cell.sim.lockstep import Lockstep
 from cell.plant.composition import Composition
 from cell.plant.base import Plant
 from cell.plant.cylinders import CylinderParams, Cylinders, cylinder_lambdas, parse_imbalance
 from cell.plant.si_turbo import si_turbo
-from cell.scenario import scenario_frames
-from cell.settings import Settings
+from cell.bus.scenario import scenario_frames
+from cell.core.settings import Settings
 from cell.sim import build
 from cell.sim.simulator import Simulator
-from cell.streams import find_streams
+from cell.runtime.samples import find_streams
 
 RPM = 1500.0
 TORQUE = 120.0
@@ -187,7 +187,7 @@ def test_a_scenario_frame_changes_the_offsets_mid_run(db):
 
 
 def test_si_turbo_takes_imbalance_and_crank_options():
-    from cell.dbc import load
+    from cell.bus.dbc import load
 
     db = load()
     s = Settings.build({"engine": "si-turbo", "duty": "steady", "imbalance": "2:-0.1"}, environ={})
@@ -223,7 +223,7 @@ def test_a_plant_stream_the_dbc_does_not_carry_is_refused(db):
 
 def test_samples_wait_in_the_plant_until_the_simulator_takes_them(db):
     """With a lockstep stride, frames are made only every few steps: no sample is lost."""
-    from cell.runtime import Runtime
+    from cell.runtime.scheduler import Runtime
 
     comp = Composition("t", [SteadyEngine(), Cylinders()])
     sim = Simulator(comp, db)

@@ -5,14 +5,20 @@ import math
 import numpy as np
 import pytest
 
-from cell.dbc import load
+from cell.bus.dbc import load
 from cell.plant import airpath_parts as parts
 from cell.plant.composition import Composition
 from cell.plant.diesel import ETC_HOLD, ETC_HOLDS, DieselEngine, DutyCycle, duty_cycle
-from cell.plant.diesel_airpath import NO_BIAS, AirPathParams, DieselAirPath, airpath_jacobian, airpath_rhs
-from cell.plant.exhaust import ExhaustBanks
-from cell.plant.profiles import large_diesel
-from cell.settings import Settings
+from cell.plant.diesel_airpath import (
+    NO_BIAS,
+    AirPathParams,
+    DieselAirPath,
+    airpath_jacobian,
+    airpath_rhs,
+)
+from cell.plant.backpressure import ExhaustBanks
+from cell.plant.large_diesel import large_diesel
+from cell.core.settings import Settings
 from cell.sim import build
 from cell.sim.simulator import Simulator
 

@@ -15,8 +15,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from cell.dbc import load
-from cell.errors import ConfigError
+from cell.bus.dbc import load
+from cell.core.errors import ConfigError
 from cell.plant import (
     RUNNING,
     TRIP_EXH_BP_LIMIT,

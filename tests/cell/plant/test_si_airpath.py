@@ -7,16 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from cell.errors import ConfigError
+from cell.core.errors import ConfigError
 from cell.plant.composition import Composition
-from cell.plant.si_airpath import (
-    MODEL_PARAMS,
-    PLANT_PARAMS,
-    SIAirPath,
-    airpath_rhs,
-    flows,
-    steady_state,
-)
+from cell.plant.si_airpath import MODEL_PARAMS, PLANT_PARAMS, SIAirPath, airpath_rhs, flows, steady_state
 from cell.plant.si_engine import SIEngine, SICycle
 
 
@@ -121,12 +114,7 @@ def test_bad_substeps_are_refused():
 
 
 def test_throttle_steps_and_operating_points_cycles():
-    from cell.plant.si_engine import (
-        OPERATING_LOADS,
-        OPERATING_SPEEDS,
-        SI_CYCLES,
-        THROTTLE_STEP_LOADS,
-    )
+    from cell.plant.si_engine import OPERATING_LOADS, OPERATING_SPEEDS, SI_CYCLES, THROTTLE_STEP_LOADS
 
     ts = SI_CYCLES["throttle-steps"]()
     assert np.all(ts.speed == 1800.0)

@@ -8,7 +8,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from cell.dbc import load
+from cell.bus.dbc import load
 from cell.plant.composition import Composition
 from cell.plant.si_engine import (
     LAMBDA_FUEL_CUT,

@@ -12,10 +12,10 @@ import can
 import pytest
 
 from cell import sim
-from cell.bus import open_bus
-from cell.dbc import load
-from cell.errors import ConfigError
-from cell.settings import Settings
+from cell.bus.interface import open_bus
+from cell.bus.dbc import load
+from cell.core.errors import ConfigError
+from cell.core.settings import Settings
 
 DB = load()
 #: the SIM messages the default engine (large-diesel) sends; other engines' frames are skipped

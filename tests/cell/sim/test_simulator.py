@@ -5,9 +5,9 @@ from __future__ import annotations
 import can
 import pytest
 
-from cell.dbc import CellDatabase, default_dbc_path
-from cell.errors import ConfigError
-from cell.lockstep import Lockstep
+from cell.bus.dbc import CellDatabase, default_dbc_path
+from cell.core.errors import ConfigError
+from cell.sim.lockstep import Lockstep
 from cell.plant import Composition, Plant, large_diesel
 from cell.sim.simulator import Simulator
 

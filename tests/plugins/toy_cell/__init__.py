@@ -7,8 +7,8 @@ runtime.
 
 from pathlib import Path
 
-from cell import registry
-from cell.registry import BlockSet, EngineProfile
+from cell.core import registry
+from cell.core.registry import BlockSet, EngineProfile
 
 from .experiment import TOY_STEP
 from .observer import toy_observer

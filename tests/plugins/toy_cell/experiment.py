@@ -8,10 +8,10 @@ import json
 import numpy as np
 
 from cell.analysis.scores import truth_scores
-from cell.dbc import load
-from cell.lockstep import Lockstep
-from cell.registry import Experiment
-from cell.runtime import Runtime
+from cell.bus.dbc import load
+from cell.sim.lockstep import Lockstep
+from cell.core.registry import Experiment
+from cell.runtime.scheduler import Runtime
 from cell.sim.simulator import Simulator
 
 from .observer import toy_observer

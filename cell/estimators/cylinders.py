@@ -1,0 +1,446 @@
+r"""Seed 001's two observers as runtime blocks: UEGO inversion and transmission-rod inversion.
+
+Both consume a crank-angle sample stream (:mod:`cell.runtime.samples`) sample by sample, run a
+:class:`~cell.estimators.periodic.PeriodicObserver` in the angle domain (6 deg per step),
+and publish at the runtime's MED ticks. Both are blocks of family ``observer`` (tunable at
+``/observers/{name}``, persisted in the tuning file).
+
+**AFR (UEGO) inversion** (:class:`UegoInversion`, seed 001 "Air fuel ratio sensor
+inversion"). The UEGO is two first-order lags in series (:math:`\tau_1`, :math:`\tau_2`).
+In the angle domain a lag of time constant :math:`\tau` at engine speed :math:`\omega_e`
+(rad/s) is :math:`A = -1/(\tau\omega_e)`, :math:`A_0 = 1/(\tau\omega_e)`, :math:`C = 1`. Two
+full-measurement observers (eqs. 6-8, :math:`h` = 3, :math:`\tilde L = -4/\tau`,
+:math:`\alpha_k^2 = 4/(k^2+1)`) in cascade (Figure 2): the first reconstructs the
+intermediate variable from the sensor, the second the manifold AFR :math:`w` from it. The
+gains are redesigned when the engine speed moves by more than 1 %. Outputs:
+
+- ``AFR_MANIFOLD_EST``: :math:`\hat w` at the last sample;
+- ``AFR_HARM_1..3``: :math:`E(k) = \sqrt{|c_k|^2 + |c_{-k}|^2} = \sqrt 2 |c_k|` (Figures 6, 8);
+- ``AFR_CYL_1..4_EST``: the mean of :math:`\hat w` over each cylinder's exhaust phase
+  (Figures 5, 7): 180 deg from the cylinder's exhaust-valve opening (``evo_deg`` after its
+  firing TDC) plus the gas's delay to the sensor (``delay`` s, i.e. ``6 rpm delay`` deg),
+  as the observer's model believes them;
+- ``IMBALANCE_CYL``: the cylinder whose exhaust-phase AFR departs most from the mean of
+  the four, when that departure exceeds ``threshold`` (0.5 AFR, about 3.4 %) for
+  ``persist`` successive exhaust phases; 0 when none does. A cylinder already named stays
+  named while its departure is within 80 % of the largest (two cylinders about level).
+  It is not yet known (the channel has no value, or is invalid after a reset) until
+  ``settle_cycles`` engine cycles after a start or a reset, and after lost frames until
+  every cylinder's exhaust phase has been seen whole again.
+
+**Transmission-rod inversion** (:class:`RodInversion`, seed 001 "Transmission rod dynamics
+inversion"). :math:`A = [[0, 1], [-\bar\omega^2, -2\bar\xi\bar\omega]]`, :math:`A_0 = [0,
+1]^T`, :math:`C = [1, 0]`, :math:`L = [2\bar\xi\bar\omega, 2\bar\omega^2]^T`, partial
+measurement gains (eq. 9) with :math:`\epsilon` = 0.1, :math:`\beta^2` = 1, :math:`h` = 2
+harmonics of the firing period (180 deg), one coefficient bank per cylinder (the
+:math:`c_{k,i}` of the paper). The speed next to the cylinders is rebuilt from the
+coefficients of :math:`w_0 = 2\bar\xi\bar\omega x_2' + \bar\omega^2 x_2`:
+:math:`X_{2,k} = c_k / (\bar\omega^2 + i\,2\bar\xi\bar\omega k\omega_0)`. Outputs:
+
+- ``N_CYL_EST``: :math:`\hat x_2` at the last sample (Figure 11);
+- ``TORQUE_BALANCE_1..4``: :math:`V_i - \overline V`, :math:`V_i = \sum_{k\neq 0}
+  |X_{2,k,i}|^2` (Figure 12), rpm².
+
+**Lost frames.** The runtime reports a gap (:meth:`Block.gap`). Up to ``gap_skip`` lost
+samples the observer *skips ahead*: its Fourier coefficients are referenced to the crank
+angle and stay valid, so it continues at the new angle and only discards the exhaust phase
+the gap fell in. A longer gap *resets* it (and the diagnosis waits ``settle_cycles``
+again). Either is counted and the last few are listed in :meth:`state` (``events``).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+from typing import Any
+
+import numpy as np
+
+from cell.runtime.blocks import Block, Param
+from cell.plant.cylinders import N_CYL, STOICH_AFR
+from cell.estimators.periodic import (
+    LinearPeriodic,
+    PeriodicObserver,
+    cascade,
+    design_full,
+    design_partial,
+)
+
+log = logging.getLogger(__name__)
+
+#: crank angle per sample, deg, and samples per engine cycle
+SAMPLE_DEG = 6.0
+CYCLE = int(720 / SAMPLE_DEG)
+STEP = math.radians(SAMPLE_DEG)
+FIRING_ORDER = (1, 3, 4, 2)
+
+#: speed bands whose observer designs are kept (oldest dropped first): a drive sweeps
+#: hundreds of 1 % bands, and memory must not grow with it
+MAX_DESIGNS = 8
+
+
+def _firing_deg(order: tuple[int, ...] = FIRING_ORDER) -> np.ndarray:
+    deg = np.zeros(N_CYL)
+    for pos, cyl in enumerate(order):
+        deg[cyl - 1] = pos * 720.0 / N_CYL
+    return deg
+
+
+class _StreamObserver(Block):
+    """What both observers share: gap handling, events, the settle count and a trace."""
+
+    kind = "observer"
+    family = "observer"
+
+    def __init__(self, name: str, stream: str, inputs: list[str], outputs: list[str],
+                 units: dict[str, str], record: bool) -> None:
+        super().__init__(name, inputs, outputs, "MED", units=units)
+        self.streams = (stream,)
+        self.z: np.ndarray | None = None
+        self.samples_seen = 0
+        self.cycles_since_reset = 0
+        self.skips = 0
+        self.resets = 0
+        self.events: collections.deque[dict[str, Any]] = collections.deque(maxlen=20)
+        #: per-sample record (t, angle index, measured, estimate...), when ``record``
+        self.trace: list[np.ndarray] | None = [] if record else None
+
+    def gap(self, stream: str, lost: int, index: int, t: float) -> None:
+        if lost <= self.gap_skip:
+            self.skips += 1
+            what = "skip"
+            self._skip()
+        else:
+            self.resets += 1
+            what = "reset"
+            self._reset()
+        event = {"t": t, "what": what, "lost_samples": lost, "at_index": index}
+        self.events.append(event)
+        log.info("%s %s: %d samples of %s lost before angle %g deg, %s", self.kind, self.name,
+                 lost, stream, index * SAMPLE_DEG, "skipping ahead" if what == "skip" else "reset")
+
+    def _skip(self) -> None:
+        pass
+
+    def _reset(self) -> None:
+        self.z = None
+        self.cycles_since_reset = 0
+
+    def _apply(self, checked: dict[str, Any]) -> None:
+        super()._apply(checked)
+        self._redesign()
+
+    def _redesign(self) -> None:
+        raise NotImplementedError
+
+    def _common_state(self) -> dict[str, Any]:
+        return {"samples": self.samples_seen, "cycles_since_reset": self.cycles_since_reset,
+                "skips": self.skips, "resets": self.resets, "events": list(self.events)}
+
+
+class UegoInversion(_StreamObserver):
+    """AFR inversion of the UEGO sensor (module docstring). Stream ``AFR_UEGO``."""
+
+    def __init__(self, name: str = "afr_inversion", *, tau1: float = 0.025, tau2: float = 0.020,
+                 h: int = 3, ltilde: float = 4.0, alpha: float = 4.0, threshold: float = 0.5,
+                 persist: int = 4, settle_cycles: int = 10, evo_deg: float = 140.0,
+                 delay: float = 0.007,
+                 gap_skip: int = 24, record: bool = False) -> None:
+        outs = (["AFR_MANIFOLD_EST"] + [f"AFR_HARM_{k}" for k in (1, 2, 3)]
+                + [f"AFR_CYL_{i}_EST" for i in range(1, N_CYL + 1)] + ["IMBALANCE_CYL"])
+        super().__init__(name, "AFR_UEGO", ["ENGINE_SPEED"], outs,
+                         {o: "AFR" for o in outs if o.startswith("AFR")}, record)
+        self.PARAMS = {
+            "tau1": Param("tau1", float, "UEGO first time constant of the model, s", gt=0.0, le=1.0),
+            "tau2": Param("tau2", float, "UEGO second time constant of the model, s", gt=0.0, le=1.0),
+            "h": Param("h", int, "harmonics of the engine cycle estimated (3 publishes AFR_HARM_1..3)",
+                       ge=1, le=12),
+            "ltilde": Param("ltilde", float, "error dynamics Ltilde = -ltilde / tau (eq. 6)",
+                            gt=1.0, le=100.0),
+            "alpha": Param("alpha", float, "alpha_k^2 = alpha / (k^2 + 1) (eq. 7)", gt=0.0, le=100.0),
+            "threshold": Param("threshold", float,
+                               "AFR departure of one cylinder's exhaust phase from the mean that "
+                               "names it in IMBALANCE_CYL", gt=0.0, le=10.0),
+            "persist": Param("persist", int, "successive exhaust phases a cylinder must stand out",
+                             ge=1, le=100),
+            "settle_cycles": Param("settle_cycles", int, "engine cycles before the first diagnosis "
+                                   "after a start or reset", ge=1, le=1000),
+            "evo_deg": Param("evo_deg", float, "exhaust-valve opening after firing TDC, deg",
+                             ge=0.0, le=720.0),
+            "delay": Param("delay", float, "delay of the exhaust gas from the valve to the "
+                           "sensor, s", ge=0.0, le=0.2),
+            "gap_skip": Param("gap_skip", int, "lost samples skipped over; more reset the observer",
+                              ge=0, le=10_000),
+        }
+        checked = self.validate({"tau1": tau1, "tau2": tau2, "h": h, "ltilde": ltilde, "alpha": alpha,
+                                 "threshold": threshold, "persist": persist,
+                                 "settle_cycles": settle_cycles, "evo_deg": evo_deg,
+                                 "delay": delay,
+                                 "gap_skip": gap_skip})
+        for key, value in checked.items():
+            setattr(self, key, value)
+        self.rpm: float | None = None
+        self._designs: dict[int, tuple[LinearPeriodic, PeriodicObserver, PeriodicObserver]] = {}
+        self._lp: LinearPeriodic | None = None
+        self._obs: PeriodicObserver | None = None
+        self._first: PeriodicObserver | None = None
+        self._bucket: int | None = None
+        self._w_last = math.nan
+        self._reset_windows()
+        self._announce_reset = False
+
+    # -- design -------------------------------------------------------------------------
+    def _redesign(self) -> None:
+        self._designs.clear()
+        self._bucket = None
+        if self.z is not None and self._first is not None and self._first.h != self.h:
+            self._reset()  # a new number of harmonics: a new state
+        if self.rpm is not None:
+            self._design_for(self.rpm)
+
+    def _design_for(self, rpm: float) -> None:
+        """Gains at ``rpm`` (cached per 1 % speed band): the lags in radians of crank angle."""
+        bucket = int(round(math.log(rpm) / math.log(1.01)))
+        if bucket == self._bucket:
+            return
+        got = self._designs.get(bucket)
+        if got is None:
+            omega_e = 1.01**bucket * math.pi / 30.0
+            stages = []
+            for tau in (self.tau2, self.tau1):  # sensor output side first (Figure 2)
+                ta = tau * omega_e
+                A, A0, C = [[-1.0 / ta]], [[1.0 / ta]], [[1.0]]
+                g = design_full(A, A0, C, [[-self.ltilde / ta]],
+                                [self.alpha / (k * k + 1) for k in range(self.h + 1)])
+                stages.append(PeriodicObserver(A, A0, C, self.h, 0.5, g, STEP))
+            got = (cascade(stages[0], stages[1]), stages[0], stages[1])
+            if len(self._designs) >= MAX_DESIGNS:  # each holds ~1 MB of per-angle tables
+                self._designs.pop(next(iter(self._designs)))
+            self._designs[bucket] = got
+        self._lp, self._first, self._obs = got
+        self._bucket = bucket
+        self._owner_of = self._owners()
+
+    # -- windows and diagnosis ----------------------------------------------------------
+    def _reset_windows(self) -> None:
+        self._win_sum = [0.0, 0.0]  # estimate, measured
+        self._win_n = 0
+        self._win_cyl: int | None = None
+        self._win_clean = False
+        self.cyl_est = np.full(N_CYL, math.nan)
+        self.cyl_meas = np.full(N_CYL, math.nan)
+        self._fresh: set[int] = set()
+        self._candidate = (0, 0)
+        self.diagnosis = math.nan
+
+    def _reset(self) -> None:
+        super()._reset()
+        self._reset_windows()
+        self._announce_reset = True
+
+    def _skip(self) -> None:
+        self._win_clean = False  # the exhaust phase the gap fell in is not used...
+        self._fresh.clear()  # ...and no diagnosis until every cylinder's phase is new again
+
+    def _owners(self) -> list[int]:
+        """The cylinder (1..4) whose exhaust phase each angle index of the cycle belongs to,
+        at the present speed band."""
+        start = self.evo_deg + 6.0 * 1.01**self._bucket * self.delay
+        pos = (((np.arange(2 * CYCLE) * SAMPLE_DEG - start) % 720.0) // (720.0 / N_CYL)).astype(int)
+        return np.asarray(FIRING_ORDER)[pos].tolist()  # two cycles: a frame may wrap
+
+    def _close_window(self) -> None:
+        cyl = self._win_cyl
+        if cyl is not None and self._win_clean and self._win_n >= 0.8 * CYCLE / N_CYL:
+            self.cyl_est[cyl - 1] = self._win_sum[0] / self._win_n
+            self.cyl_meas[cyl - 1] = self._win_sum[1] / self._win_n
+            self._fresh.add(cyl)
+            if cyl == FIRING_ORDER[-1]:
+                self.cycles_since_reset += 1
+            self._diagnose()
+        self._win_sum = [0.0, 0.0]
+        self._win_n = 0
+        self._win_clean = True
+
+    def _diagnose(self) -> None:
+        if (self.cycles_since_reset < self.settle_cycles or not np.isfinite(self.cyl_est).all()
+                or len(self._fresh) < N_CYL):
+            return
+        dev = np.abs(self.cyl_est - self.cyl_est.mean())
+        i = int(np.argmax(dev))
+        cand = i + 1 if dev[i] > self.threshold else 0
+        prev, count = self._candidate
+        if cand and prev and dev[prev - 1] > self.threshold and dev[prev - 1] >= 0.8 * dev[i]:
+            cand = prev  # two cylinders about level: keep the one named (hysteresis)
+        count = count + 1 if cand == prev else 1
+        self._candidate = (cand, count)
+        if count >= self.persist:
+            self.diagnosis = float(cand)
+
+    # -- samples and ticks --------------------------------------------------------------
+    def _samples(self, stream: str, index: int, values: np.ndarray, t: float) -> None:
+        if self.rpm is None:
+            return  # no engine speed yet: the angle-domain model is unknown
+        self._design_for(self.rpm)
+        if self.z is None:
+            self.z = np.concatenate([self._first.initial(values[0]), self._obs.initial(values[0])])
+            self._reset_windows()
+        self.z, out = self._lp.run(self.z, index, values)
+        w = out[:, 0].tolist()
+        last = w[-1]
+        if not math.isfinite(last):  # a non-finite state reaches the output within a frame
+            self._reset()
+            raise ArithmeticError("the AFR observer diverged; reset")
+        vals = values.tolist()
+        n = len(vals)
+        self.samples_seen += n
+        self._w_last = last
+        owners = self._owner_of[index:index + n]
+        if owners[0] == owners[-1] == self._win_cyl:  # the frame lies in one exhaust phase
+            self._win_sum[0] += sum(w)
+            self._win_sum[1] += sum(vals)
+            self._win_n += n
+        else:
+            for k in range(n):
+                if owners[k] != self._win_cyl:
+                    self._close_window()
+                    self._win_cyl = owners[k]
+                self._win_sum[0] += w[k]
+                self._win_sum[1] += vals[k]
+                self._win_n += 1
+        if self.trace is not None:
+            idx = (index + np.arange(n)) % CYCLE
+            self.trace.append(np.column_stack([np.full(n, t), idx, values, out[:, 0]]))
+
+    def harmonics(self) -> np.ndarray:
+        """:math:`E(k)` for k = 1..h of the reconstructed manifold AFR (nan before any sample)."""
+        if self.z is None or self._obs is None:
+            return np.full(self.h, math.nan)
+        c = self._obs.coefficients(self.z[-self._obs.d:])[:, 0]
+        return math.sqrt(2.0) * np.abs(c[1:])
+
+    def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
+        rpm = inputs["ENGINE_SPEED"]
+        self.rpm = rpm if math.isfinite(rpm) and rpm > 100.0 else None
+        e = self.harmonics()
+        out = {"AFR_MANIFOLD_EST": self._w_last}
+        for k in (1, 2, 3):
+            out[f"AFR_HARM_{k}"] = float(e[k - 1]) if k <= len(e) else 0.0
+        for i in range(N_CYL):
+            out[f"AFR_CYL_{i + 1}_EST"] = float(self.cyl_est[i])
+        out["IMBALANCE_CYL"] = self.diagnosis
+        # what is not known yet keeps its channel's state (no value yet, or the reset's mark)
+        out = {o: v for o, v in out.items() if math.isfinite(v)}
+        self.errors = {}
+        if self._announce_reset:
+            self._announce_reset = False
+            out["IMBALANCE_CYL"] = math.nan
+            self.errors["IMBALANCE_CYL"] = (f"observer reset after lost frames: settling for "
+                                            f"{self.settle_cycles} engine cycles")
+        return out
+
+    def state(self) -> dict[str, Any]:
+        return {**self._common_state(), "rpm": self.rpm,
+                "afr_cyl_est": self.cyl_est.tolist(), "afr_cyl_measured": self.cyl_meas.tolist(),
+                "harmonics": self.harmonics().tolist(), "diagnosis": self.diagnosis,
+                "candidate": list(self._candidate)}
+
+
+class RodInversion(_StreamObserver):
+    """Transmission-rod inversion (module docstring). Stream ``N_CRANK``."""
+
+    def __init__(self, name: str = "rod_inversion", *, omega_bar: float = 3.1, xi: float = 0.15,
+                 h: int = 2, eps: float = 0.1, beta2: float = 1.0, gap_skip: int = 24,
+                 record: bool = False) -> None:
+        outs = ["N_CYL_EST"] + [f"TORQUE_BALANCE_{i}" for i in range(1, N_CYL + 1)]
+        units = {"N_CYL_EST": "rpm", **{o: "rpm^2" for o in outs[1:]}}
+        super().__init__(name, "N_CRANK", [], outs, units, record)
+        self.PARAMS = {
+            "omega_bar": Param("omega_bar", float, "natural frequency of the rod, per radian of "
+                               "crank angle", gt=0.1, le=100.0),
+            "xi": Param("xi", float, "damping of the rod", gt=0.0, le=2.0),
+            "h": Param("h", int, "harmonics of the firing period estimated", ge=1, le=8),
+            "eps": Param("eps", float, "adaptation gain epsilon (eq. 9)", gt=0.0, le=1.0),
+            "beta2": Param("beta2", float, "beta^2 (eq. 9)", gt=0.0, le=100.0),
+            "gap_skip": Param("gap_skip", int, "lost samples skipped over; more reset the observer",
+                              ge=0, le=10_000),
+        }
+        checked = self.validate({"omega_bar": omega_bar, "xi": xi, "h": h, "eps": eps,
+                                 "beta2": beta2, "gap_skip": gap_skip})
+        for key, value in checked.items():
+            setattr(self, key, value)
+        self._n_last = math.nan
+        self._redesign()
+
+    def _redesign(self) -> None:
+        wb, xi = self.omega_bar, self.xi
+        A = [[0.0, 1.0], [-wb**2, -2.0 * xi * wb]]
+        A0, C = [[0.0], [1.0]], [[1.0, 0.0]]
+        L = [[2.0 * xi * wb], [2.0 * wb**2]]
+        omega0 = 2.0 * math.pi / math.pi  # the firing period, 180 deg
+        g = design_partial(A, A0, C, L, omega0, self.h, self.eps, self.beta2)
+        per = CYCLE // N_CYL
+        order = FIRING_ORDER
+        self._obs = obs = PeriodicObserver(A, A0, C, self.h, omega0, g, STEP, banks=N_CYL,
+                                           bank=lambda j: order[j // per] - 1, cycle=CYCLE)
+        self._D = np.array([wb**2 + 2j * xi * wb * k * omega0 for k in range(self.h + 1)])
+        O = np.zeros((CYCLE, 2, obs.d))  # noqa: E741  rows: x2 estimate, C x
+        for j in range(CYCLE):
+            off = obs.n + obs.bank_of(j) * obs.nc_bank
+            a = obs.angle(j)
+            O[j, 0, off] = 1.0 / wb**2
+            for k in range(1, self.h + 1):
+                gk = 1.0 / self._D[k]
+                c, s = math.cos(k * omega0 * a), math.sin(k * omega0 * a)
+                base = off + 2 * k - 1
+                O[j, 0, base] = 2.0 * (gk.real * c - gk.imag * s)
+                O[j, 0, base + 1] = -2.0 * (gk.imag * c + gk.real * s)
+            O[j, 1, :obs.n] = obs.C[0]
+        self._lp = LinearPeriodic(obs._M, obs._N, O, np.zeros((CYCLE, 2, 1)))
+        if self.z is not None and len(self.z) != obs.d:
+            self._reset()  # a new number of harmonics: a new state
+
+    def _samples(self, stream: str, index: int, values: np.ndarray, t: float) -> None:
+        if self.z is None:
+            self.z = self._obs.initial(values[0])
+        self.z, out = self._lp.run(self.z, index, values)
+        if not np.isfinite(self.z).all():
+            self._reset()
+            raise ArithmeticError("the rod observer diverged; reset")
+        n0 = self.samples_seen
+        self.samples_seen += len(values)
+        self.cycles_since_reset += (self.samples_seen // CYCLE) - (n0 // CYCLE)
+        self._n_last = float(out[-1, 0])
+        if self.trace is not None:
+            idx = (index + np.arange(len(values))) % CYCLE
+            self.trace.append(np.column_stack([np.full(len(values), t), idx, values, out[:, 0]]))
+
+    def balance(self) -> np.ndarray:
+        """:math:`V_i` of each cylinder (rpm²) from its coefficient bank (Figure 12)."""
+        if self.z is None:
+            return np.full(N_CYL, math.nan)
+        v = np.zeros(N_CYL)
+        for cyl in range(N_CYL):
+            c = self._obs.coefficients(self.z, bank=cyl)[:, 0]
+            x2 = c[1:] / self._D[1:]
+            v[cyl] = float(np.sum(2.0 * np.abs(x2) ** 2))
+        return v
+
+    def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
+        v = self.balance()
+        out = {"N_CYL_EST": self._n_last}
+        for i in range(N_CYL):
+            out[f"TORQUE_BALANCE_{i + 1}"] = float(v[i] - v.mean())
+        return {o: val for o, val in out.items() if math.isfinite(val)}
+
+    def state(self) -> dict[str, Any]:
+        return {**self._common_state(), "balance_energy": self.balance().tolist()}
+
+
+def imbalance_observers(record: bool = False) -> list[Block]:
+    """Both seed-001 observers with their default tuning."""
+    return [UegoInversion(record=record), RodInversion(record=record)]
+
+
+__all__ = ["RodInversion", "UegoInversion", "imbalance_observers", "STOICH_AFR"]

@@ -1,0 +1,182 @@
+"""The large diesel's air-path observers: the default EKF and the bias-augmented EKF (seed 002).
+
+Both run the default model (:func:`~cell.plant.diesel_airpath.airpath_rhs` with the nominal
+:class:`~cell.plant.diesel_airpath.AirPathParams`: not the engine's true, biased ones) on
+the estimator platform (:class:`~cell.estimators.observer.ObserverBlock`), discretised by
+Euler forward steps of 10 ms as seed 002, §2.2 does. At run time they measure ``P_IM`` and
+``N_T``; ``P_EM`` is estimated, not measured (§6.2).
+
+- ``airpath-default`` (seed 002's *default observer*): publishes ``DSL_P_IM_EST_DEFAULT``,
+  ``DSL_P_EM_EST_DEFAULT``, ``N_T_EST_DEFAULT``;
+- ``airpath-augmented`` (the *augmented observer*, eq. 3/4 with the designed
+  :math:`\\hat A_q`): publishes ``DSL_P_IM_EST``, ``DSL_P_EM_EST``, ``N_T_EST`` and the bias
+  states ``Q_BIAS_1 ...``.
+
+:math:`\\hat A_q` comes from a design file written by ``testcell design bias LOG``
+(:mod:`cell.experiments.diesel_airpath`). The runtime reads the file named by the setting
+``bias_design`` (``TESTCELL_BIAS_DESIGN``); without one it uses the design shipped with the
+cell, :data:`SHIPPED_DESIGN`, made by that command on a 300 s ``etc`` log (seed 0).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from cell.core.errors import ConfigError
+from cell.core.options import Option
+from cell.core.registry import BlockSet
+from cell.plant.diesel_airpath import (
+    INPUTS,
+    SIGNAL,
+    STATES,
+    UNITS,
+    AirPathParams,
+    airpath_jacobian,
+    airpath_rhs,
+)
+from cell.estimators.augmentation import AugmentationError, augment, pbh_check
+from cell.estimators.core import Model
+from cell.estimators.observer import ObserverBlock
+
+#: The design the runtime uses when no ``bias_design`` file is set.
+SHIPPED_DESIGN = Path(__file__).with_name("data") / "bias_large_diesel.json"
+#: Model outputs, one per state (N_T in rpm, the state in krpm); their bus signals are
+#: :data:`~cell.plant.diesel_airpath.SIGNAL`.
+OUTPUTS = ("P_IM", "P_EM", "N_T")
+#: The sensors the observers use at run time (§6.2: not P_EM).
+RUNTIME_SENSORS = ("P_IM", "N_T")
+#: Observer step (Euler), s.
+STEP = 0.01
+_SCALE = np.array([1.0, 1.0, 1000.0])
+#: Sensor noise variances (P_IM kPa², P_EM kPa², N_T rpm²), a little above the plant's.
+R_DIAG = {"P_IM": 0.8 ** 2, "P_EM": 4.0 ** 2, "N_T": 100.0 ** 2}
+#: Process noise variance per tick of the model states (kPa², kPa², krpm²) and of a bias
+#: state (slowly varying, §2: a random walk).
+Q_STATES = (0.05, 0.5, 1e-4)
+Q_BIAS = 1e-3
+X0 = (101.3, 105.0, 5.0)
+
+
+def _h(t, x, u, p):
+    return np.asarray(x[:3], dtype=float) * _SCALE
+
+
+def _H(t, x, u, p):
+    return np.diag(_SCALE)
+
+
+class _CachedRhs:
+    """:func:`airpath_rhs` and its Jacobian for one observer, with a one-entry cache.
+
+    An EKF step evaluates the model at the same point three times: the prediction, the
+    Jacobian pass of the same Euler step and the base point of the forward differences
+    (:func:`airpath_jacobian`). The cache keeps that to one evaluation (four per step
+    instead of six). One instance per model, so the observers of two threads never share it.
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple[bytes, bytes] | None = None
+        self._value: np.ndarray | None = None
+
+    def f(self, t, x, u, p) -> np.ndarray:
+        key = (np.asarray(x, dtype=float).tobytes(), np.asarray(u, dtype=float).tobytes())
+        if key != self._key:
+            self._value = airpath_rhs(t, x, u, p)
+            self._key = key
+        return self._value
+
+    def jacobian(self, t, x, u, p) -> np.ndarray:
+        """:func:`airpath_jacobian` with its base point from the cache."""
+        return airpath_jacobian(t, x, u, p, f0=self.f(t, x, u, p))
+
+
+def default_model(params: AirPathParams | None = None) -> Model:
+    """Seed 002's default model (eq. 1) of the air path, on the estimator core."""
+    rhs = _CachedRhs()
+    return Model(STATES, INPUTS, OUTPUTS, rhs.f, _h, F=rhs.jacobian, H=_H,
+                 params=params or AirPathParams(), dt=0.0, method="euler", max_step=STEP,
+                 units={**UNITS, "N_T": "krpm"})
+
+
+def runtime_C(sensors: Sequence[str] = RUNTIME_SENSORS) -> np.ndarray:
+    """Rows of :math:`C = \\partial h/\\partial x` (states in model units) for ``sensors``."""
+    C = np.eye(3)
+    return C[[OUTPUTS.index(s) for s in sensors]]
+
+
+def default_observer(name: str = "airpath-default", sensors: Sequence[str] = RUNTIME_SENSORS,
+                     channels: dict[str, str] | None = None, rate: str = "FAS") -> ObserverBlock:
+    """The default observer (EKF on the default model) measuring ``sensors``."""
+    channels = channels if channels is not None else {s: f"{SIGNAL[s]}_EST_DEFAULT" for s in STATES}
+    return ObserverBlock(name, default_model(), measurements={s: SIGNAL[s] for s in sensors},
+                         Q=list(Q_STATES), R=[R_DIAG[s] for s in sensors], x0=list(X0),
+                         P0=[100.0, 400.0, 100.0], rate=rate, channels=channels,
+                         prefix="AIRPATH_DEF")
+
+
+def augmented_observer(Aq: np.ndarray, name: str = "airpath-augmented",
+                       sensors: Sequence[str] = RUNTIME_SENSORS, rate: str = "FAS",
+                       channels: dict[str, str] | None = None) -> ObserverBlock:
+    """The augmented observer (seed 002, eq. 3/4) with :math:`\\hat A_q` = ``Aq``.
+
+    Refused (:class:`~cell.estimators.augmentation.AugmentationError`) when ``Aq`` fails the PBH
+    test (Theorem 2) with the run-time sensors.
+    """
+    Aq = np.asarray(Aq, dtype=float).reshape(3, -1)
+    pbh_check(runtime_C(sensors), Aq, STATES, sensors)
+    model = augment(default_model(), Aq)
+    nq = Aq.shape[1]
+    if channels is None:
+        channels = {s: f"{SIGNAL[s]}_EST" for s in STATES} | {f"Q_BIAS_{i + 1}": f"Q_BIAS_{i + 1}"
+                                                       for i in range(nq)}
+    return ObserverBlock(name, model, measurements={s: SIGNAL[s] for s in sensors},
+                         Q=[*Q_STATES, *[Q_BIAS] * nq], R=[R_DIAG[s] for s in sensors],
+                         x0=[*X0, *[0.0] * nq], P0=[100.0, 400.0, 100.0, *[100.0] * nq],
+                         rate=rate, channels=channels, prefix="AIRPATH_AUG",
+                         units={f"Q_BIAS_{i + 1}": "" for i in range(nq)})
+
+
+def load_design(path: str | Path) -> np.ndarray:
+    """:math:`\\hat A_q` from a design file of ``testcell design bias``; refuses a bad file."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"bias design {path}: no such file (write one with `testcell design "
+                          "bias LOG --out FILE`)") from None
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"bias design {path}: not a readable JSON file: {exc}") from None
+    try:
+        Aq = np.asarray(data["Aq"], dtype=float)
+    except (KeyError, TypeError, ValueError):
+        raise ConfigError(f"bias design {path}: field 'Aq' (a 3 x n_q list of numbers) is "
+                          "missing or not numeric") from None
+    if Aq.ndim != 2 or Aq.shape[0] != 3 or Aq.shape[1] < 1 or not np.isfinite(Aq).all():
+        raise ConfigError(f"bias design {path}: 'Aq' must be 3 x n_q (n_q >= 1) finite numbers, "
+                          f"got shape {Aq.shape}")
+    return Aq
+
+
+def airpath_observers(design: str | Path | None = None) -> list[ObserverBlock]:
+    """The block set of ``large-diesel``: the default and the augmented observer side by side."""
+    path = Path(design) if design else SHIPPED_DESIGN
+    Aq = load_design(path)
+    try:
+        aug = augmented_observer(Aq)
+    except AugmentationError as exc:
+        raise ConfigError(f"bias design {path}: {exc}") from None
+    return [default_observer(), aug]
+
+
+#: seed 002: the default and the bias-augmented air-path observers of large-diesel side by
+#: side, with their own option ``--bias-design`` (``TESTCELL_BIAS_DESIGN``).
+DIESEL_AIRPATH_BLOCKS = BlockSet(
+    "seed002-airpath", lambda run: airpath_observers(run.blocks.get("bias_design")),
+    engines=("large-diesel",),
+    options=(Option("bias_design", "--bias-design", Path, metavar="FILE",
+                    help="design file of the augmented diesel air-path observer (testcell design "
+                         "bias; default: the design shipped with the cell)"),))

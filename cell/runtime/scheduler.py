@@ -1,0 +1,555 @@
+"""The cyclic runtime: bus time, FAS/MED/SLO ticks, channels and blocks.
+
+The runtime is driven by frames, never by the wall clock. Frames are applied in
+timestamp order; before a frame stamped ``ts`` is applied, every tick due strictly before
+``ts`` runs, so at each tick an input's value is the latest frame value at or before the
+tick. The same object runs live (:mod:`cell.app.live`) and offline (:mod:`cell.runtime.replay`), so a
+log replayed at any speed gives the numbers the live cell gave.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import can
+
+from cell.runtime import units
+from cell.runtime.blocks import RATE_NAMES, Block
+from cell.runtime.channels import INVALID, OK, STALE, Channel, History
+from cell.bus.dbc import DECODE_ERROR_KINDS, CellDatabase, FrameDecodeError
+from cell.core.errors import ConfigError, UnknownBlockError
+from cell.runtime.samples import StreamLayout, StreamTracker, find_streams
+
+_EPS = 1e-9
+#: distinct arbitration IDs counted one by one (``Runtime.frames_by_id``); frames of further
+#: IDs are counted together under :data:`OTHER_IDS`, so a bus of random IDs stays bounded
+MAX_COUNTED_IDS = 1024
+OTHER_IDS = (-1, False)
+
+#: Kinds of bad frame counted in ``/health``: the decoder's, plus remote and error frames
+#: (which carry no signal values).
+FRAME_ERROR_KINDS = (*DECODE_ERROR_KINDS, "remote_frame", "error_frame")
+
+#: How many distinct unknown frame IDs are remembered (a fuzzed bus has millions).
+MAX_UNKNOWN_IDS = 256
+
+
+@dataclass(frozen=True)
+class Rates:
+    """Tick rates in Hz of the three cyclic tasks (seed 004: 50/10/1 Hz)."""
+
+    FAS: float = 50.0
+    MED: float = 10.0
+    SLO: float = 1.0
+
+    @classmethod
+    def parse(cls, spec: str | None) -> Rates:
+        """Parse ``--cycle``: a number sets MED in Hz; ``FAS=50,MED=10,SLO=1`` sets any of them."""
+        if spec is None or str(spec).strip() == "":
+            return cls()
+        spec = str(spec).strip()
+        values: dict[str, float] = {}
+        parts = [p.strip() for p in spec.split(",")]
+        for part in parts:
+            name, sep, text = part.partition("=")
+            if not sep:
+                name, text = "MED", part
+            name = name.strip().upper()
+            if name not in RATE_NAMES:
+                raise ConfigError(f"--cycle {spec!r}: unknown task {name!r}; use FAS, MED or SLO")
+            try:
+                hz = float(text)
+            except ValueError:
+                raise ConfigError(f"--cycle {spec!r}: {name} rate {text!r} is not a number") from None
+            if not math.isfinite(hz) or not 0.01 <= hz <= 1000:
+                raise ConfigError(f"--cycle {spec!r}: {name} rate must be 0.01..1000 Hz, got {text}")
+            values[name] = hz
+        return cls(**values)
+
+    def period(self, name: str) -> float:
+        return 1.0 / getattr(self, name)
+
+
+class _StreamRoute:
+    """One sample stream in the runtime: its layout, its order tracker and its consumers."""
+
+    __slots__ = ("layout", "tracker", "blocks")
+
+    def __init__(self, layout: StreamLayout, window: int) -> None:
+        self.layout = layout
+        self.tracker = StreamTracker(layout, window=window)
+        self.blocks: list[Block] = []
+
+
+class Runtime:
+    """Channels, blocks and the tick scheduler of one cell.
+
+    Blocks that declare sample :attr:`~cell.runtime.blocks.Block.streams` also get every sample of
+    those crank-angle streams (:mod:`cell.runtime.samples`), in angle order, as each frame is
+    applied (between ticks, on bus time); lost, reordered and late frames are counted per
+    stream in :meth:`health` and gaps are reported to the blocks (:meth:`Block.gap`).
+
+    Parameters
+    ----------
+    db:
+        The DBC codec; decides units, staleness and which outputs go on the bus.
+    blocks:
+        Blocks to run, stepped in the order given within each tick.
+    rates:
+        FAS/MED/SLO rates. History and output rows are taken at MED ticks.
+    history_s:
+        Length of each channel's history ring buffer, in seconds of bus time.
+    stream_window:
+        Frames of a sample stream that may arrive ahead of a missing one before it is
+        declared lost (a reordering this deep is put right).
+    """
+
+    def __init__(
+        self,
+        db: CellDatabase,
+        blocks: Iterable[Block] = (),
+        rates: Rates | None = None,
+        history_s: float = 600.0,
+        stream_window: int = 2,
+    ) -> None:
+        self.db = db
+        self.rates = rates or Rates()
+        self.lock = threading.RLock()
+        self.history_len = max(1, int(round(history_s * self.rates.MED)))
+        self._history = History(self.history_len)
+        self._channels: dict[str, Channel] = {}
+        #: newest undecoded frame per message: frames are decoded when a tick or a reader
+        #: needs their values, so the ten frames of a 100 Hz message between two 10 Hz
+        #: ticks cost one decode, not ten
+        self._pending: dict[tuple[int, bool], tuple[Any, float, bytes]] = {}
+        self.blocks: dict[str, Block] = {}
+        self.producer: dict[str, str] = {}
+        self.outbox: list[can.Message] = []
+        self.tick_listeners: list[Callable[[float], None]] = []
+        self.frames = 0
+        self.late_frames = 0
+        self.decode_errors: collections.Counter[str] = collections.Counter(
+            {k: 0 for k in FRAME_ERROR_KINDS}
+        )
+        #: frames whose ID no DBC file defines, by ID (at most MAX_UNKNOWN_IDS distinct IDs)
+        self.unknown_ids: collections.Counter[tuple[int, bool]] = collections.Counter()
+        self.block_errors: collections.Counter[str] = collections.Counter()
+        #: outputs withheld from the bus because a block produced NaN or inf, by channel
+        self.withheld: collections.Counter[str] = collections.Counter()
+        #: small state kept for the service between requests (trip onset, reset counter)
+        self.extra_state: dict[str, Any] = {}
+        self.last_frame_time: float | None = None
+        self.last_tick_time: float | None = None
+        self._frame_times: collections.deque[float] = collections.deque(maxlen=20_000)
+        # -- metrics (GET /metrics): counted here, formatted by service.metrics ------------
+        #: frames received per (arbitration ID, extended), known or not
+        self.frames_by_id: dict[tuple[int, bool], int] = {}
+        #: ticks whose work (block steps and MED listeners) took longer than their period
+        self.tick_overruns = 0
+        #: ticks that had work (every MED tick; FAS and SLO ticks when a block runs at them)
+        self.ticks = 0
+        #: wall seconds of the slowest tick so far
+        self.tick_seconds_max = 0.0
+        #: per block: [wall seconds spent in step, steps]
+        self.step_time: dict[str, list[float]] = {}
+        self._next_index: dict[str, int] | None = None
+        self._next_due: float | None = None
+        # an input goes stale by the third MED tick after its frames stop
+        self._stale_floor = 1.5 / self.rates.MED
+        #: frame key -> the sample stream it carries, for streams some block consumes
+        self._streams: dict[tuple[int, bool], _StreamRoute] = {}
+        self._stream_window = stream_window
+        self._layouts: dict[str, StreamLayout] | None = None
+        for block in blocks:
+            self.add_block(block)
+
+    # -- blocks ---------------------------------------------------------------------
+    def add_block(self, block: Block) -> None:
+        """Add a block; refuse one whose outputs another producer already owns."""
+        with self.lock:
+            if block.name in self.blocks:
+                raise ConfigError(f"a block named {block.name!r} already exists")
+            for out in block.outputs:
+                owner = self.producer.get(out)
+                if owner is not None:
+                    raise ConfigError(
+                        f"{block.name} cannot produce {out}: {owner} already produces it"
+                    )
+                info = self.db.signals.get(out)
+                if info is not None and self.db.message(info.message).senders != ["RUNTIME"]:
+                    raise ConfigError(
+                        f"{block.name} cannot produce {out}: it is a bus input sent by "
+                        f"{', '.join(self.db.message(info.message).senders) or 'another node'}"
+                    )
+            layouts = [self._stream_layout(name, block.name) for name in block.streams]
+            self.blocks[block.name] = block
+            for layout in layouts:
+                self._stream_route(layout).blocks.append(block)
+            for out in block.outputs:
+                self.producer[out] = block.name
+                unit = units.resolve(self.db, block, out, self._unit_of)  # DBC, declared, else its one input's
+                ch = self._channel(out, source=block.name)
+                ch.unit = ch.unit or unit
+
+    def remove_block(self, name: str) -> Block:
+        """Remove a block, its output channels and its error counts (they ended with it)."""
+        with self.lock:
+            block = self.block(name)
+            del self.blocks[name]
+            self.block_errors.pop(name, None)
+            for key, route in list(self._streams.items()):
+                route.blocks = [b for b in route.blocks if b is not block]
+                if not route.blocks:
+                    del self._streams[key]
+            for out in block.outputs:
+                self.producer.pop(out, None)
+                self._channels.pop(out, None)
+                self._history.drop(out)
+                self.withheld.pop(out, None)
+            return block
+
+    def _unit_of(self, channel: str) -> str | None:
+        ch = self._channels.get(channel)
+        return ch.unit if ch is not None else None
+
+    def _stream_layout(self, stream: str, block: str) -> StreamLayout:
+        """The layout of a sample stream the DBC defines; refuse one it does not."""
+        if self._layouts is None:
+            self._layouts = find_streams(self.db.messages)
+        layout = self._layouts.get(stream)
+        if layout is None:
+            raise ConfigError(f"{block} consumes sample stream {stream!r}, which no DBC message "
+                              f"carries; streams: {', '.join(sorted(self._layouts)) or 'none'}")
+        return layout
+
+    def _stream_route(self, layout: StreamLayout) -> _StreamRoute:
+        m = self.db.message(layout.message)
+        key = (m.frame_id, bool(m.is_extended_frame))
+        route = self._streams.get(key)
+        if route is None:
+            route = self._streams[key] = _StreamRoute(layout, self._stream_window)
+        return route
+
+    def _ingest_stream(self, route: _StreamRoute, message: Any, data: bytes, ts: float) -> None:
+        """Hand a stream frame's samples, in angle order, to the blocks that consume it."""
+        try:
+            values = self.db.decode_payload(message, bytes(data))
+        except FrameDecodeError as exc:
+            self.decode_errors[exc.kind] += 1
+            return
+        index, samples = route.layout.unpack(values)
+        name = route.layout.name
+        for event in route.tracker.push(index, samples, ts):
+            for block in route.blocks:
+                try:
+                    if event[0] == "samples":
+                        block.samples(name, event[1], event[2], event[3])
+                    else:
+                        block.gap(name, event[1], event[2], event[3])
+                except ArithmeticError:
+                    self.block_errors[block.name] += 1
+
+    def block(self, name: str, family: str | None = None) -> Block:
+        block = self.blocks.get(name)
+        if block is None or (family is not None and block.family != family):
+            known = [b.name for b in self.blocks.values() if family is None or b.family == family]
+            raise UnknownBlockError(family or "block", name, known)
+        return block
+
+    def set_params(self, name: str, changes: dict[str, Any], family: str | None = None) -> dict:
+        """Validate and apply a parameter change; it takes effect at the next tick."""
+        with self.lock:
+            return self.block(name, family).set_params(changes)
+
+    # -- channels -------------------------------------------------------------------
+    def _channel(self, name: str, source: str = "bus") -> Channel:
+        ch = self._channels.get(name)
+        if ch is None:
+            info = self.db.signals.get(name)
+            stale_after = math.inf
+            if source == "bus":
+                cycle = info.cycle_time_s if info and info.cycle_time_s else 0.0
+                stale_after = max(2.5 * cycle, self._stale_floor)
+            ch = Channel(
+                name=name,
+                unit=info.unit if info else "",
+                source=source,
+                stale_after=stale_after,
+            )
+            self._channels[name] = ch
+        return ch
+
+    @property
+    def now(self) -> float | None:
+        """The runtime's bus time: the later of the last frame and the last tick."""
+        times = [t for t in (self.last_frame_time, self.last_tick_time) if t is not None]
+        return max(times) if times else None
+
+    def frames_per_second(self, window_s: float = 1.0) -> float:
+        """Frame rate over the last ``window_s`` seconds of bus time."""
+        with self.lock:
+            if not self._frame_times:
+                return 0.0
+            end = self.now
+            count = sum(1 for t in reversed(self._frame_times) if t > end - window_s)
+            return count / window_s
+
+    # -- frames and ticks -----------------------------------------------------------
+    def ingest(self, msg: can.Message) -> None:
+        """Apply one received frame at its bus time, after the ticks due before it."""
+        self.ingest_many((msg,))
+
+    def ingest_many(self, msgs: Iterable[can.Message]) -> int:
+        """Apply frames in order (the offline replay's fast path); returns how many."""
+        n = 0
+        by_id = self.db._by_id
+        pending = self._pending
+        streams = self._streams
+        frame_times = self._frame_times
+        by_id_count = self.frames_by_id
+        with self.lock:
+            try:
+                for msg in msgs:
+                    n += 1
+                    ts = float(msg.timestamp)
+                    nxt = self._next_due
+                    if nxt is None or ts > nxt + _EPS:
+                        self._run_ticks(ts, inclusive=False)
+                    frame_times.append(ts)
+                    key = (msg.arbitration_id, bool(msg.is_extended_id))
+                    seen = by_id_count.get(key)
+                    if seen is None and len(by_id_count) >= MAX_COUNTED_IDS:
+                        by_id_count[OTHER_IDS] = by_id_count.get(OTHER_IDS, 0) + 1  # a bus of random IDs
+                    else:
+                        by_id_count[key] = (seen or 0) + 1
+                    last = self.last_frame_time
+                    if last is None or ts >= last:
+                        self.last_frame_time = ts
+                    else:
+                        self.late_frames += 1
+                    if msg.is_error_frame or msg.is_remote_frame:
+                        self.decode_errors["error_frame" if msg.is_error_frame
+                                           else "remote_frame"] += 1
+                        continue
+                    message = by_id.get(key)
+                    if message is None or len(msg.data) != message.length:
+                        try:
+                            self.db.check(msg)  # the one place that words the error
+                        except FrameDecodeError as exc:
+                            self.decode_errors[exc.kind] += 1
+                            if exc.kind == "unknown_id" and (
+                                    key in self.unknown_ids or len(self.unknown_ids) < MAX_UNKNOWN_IDS):
+                                self.unknown_ids[key] += 1
+                        continue
+                    if streams:
+                        route = streams.get(key)
+                        if route is not None:
+                            self._ingest_stream(route, message, msg.data, ts)
+                    prev = pending.get(key)
+                    if prev is None or ts >= prev[1]:
+                        pending[key] = (message, ts, msg.data)
+            finally:  # frames applied before a bad log line still count
+                self.frames += n
+        return n
+
+    def _flush(self) -> None:
+        """Decode the newest pending frame of each message into its channels."""
+        if not self._pending:
+            return
+        pending = list(self._pending.values())
+        self._pending.clear()  # in place: ingest_many holds a reference to this dict
+        for message, ts, data in pending:
+            try:
+                values = self.db.decode_payload(message, bytes(data))
+            except FrameDecodeError as exc:
+                self.decode_errors[exc.kind] += 1
+                continue
+            for name, value in values.items():
+                if self.producer.get(name):
+                    continue  # our own output seen on the bus (e.g. a second runtime's)
+                ch = self._channel(name)
+                if ch.t is None or ts >= ch.t:
+                    ch.update(value, ts)
+
+    @property
+    def channels(self) -> dict[str, Channel]:
+        """Every channel by name, with the frames received so far applied."""
+        self._flush()
+        return self._channels
+
+    def advance(self, t: float) -> None:
+        """Run every tick due at or before bus time ``t`` (end of a log, or a silent bus)."""
+        with self.lock:
+            self._run_ticks(t, inclusive=True)
+
+    def _run_ticks(self, until: float, inclusive: bool) -> None:
+        nxt = self._next_due
+        if nxt is not None and (nxt > until + _EPS or (not inclusive and nxt >= until - _EPS)):
+            return  # the common case: a frame between two ticks
+        if self._next_index is None:
+            # first time seen: the first tick of each task is the first grid point at or after it
+            self._next_index = {
+                r: math.ceil(until * getattr(self.rates, r) - _EPS) for r in RATE_NAMES
+            }
+        while True:
+            due = []
+            for r in RATE_NAMES:
+                t = self._next_index[r] / getattr(self.rates, r)
+                if t < until - _EPS or (inclusive and t <= until + _EPS):
+                    due.append((t, r))
+            if not due:
+                break
+            t = min(d[0] for d in due)
+            ticking = frozenset(r for (tt, r) in due if abs(tt - t) <= _EPS)
+            for r in ticking:
+                self._next_index[r] += 1
+            work = "MED" in ticking or any(not ticking.isdisjoint(b.rates) for b in self.blocks.values())
+            if work:
+                started = time.perf_counter()
+                self._flush()  # a FAS tick with no FAS block reads nothing: skip the decode
+                self._tick(ticking, t)
+            self.last_tick_time = t
+            if "MED" in ticking:
+                self._after_med_tick(t)
+            if work:
+                self._count_tick(time.perf_counter() - started, ticking)
+        self._next_due = min(self._next_index[r] / getattr(self.rates, r) for r in RATE_NAMES)
+
+    def _count_tick(self, seconds: float, ticking: frozenset[str]) -> None:
+        """Count a tick that had work, and an overrun when the work took longer than the
+        period of the fastest task with work in it (a FAS tick with no FAS block has none)."""
+        self.ticks += 1
+        if seconds > self.tick_seconds_max:
+            self.tick_seconds_max = seconds
+        rates = self.rates
+        if seconds * max(rates.FAS, rates.MED, rates.SLO) <= 1.0:
+            return  # shorter than every period (the common case): no overrun, nothing to scan
+        working = [r for r in ticking if r == "MED" or any(r in b.rates for b in self.blocks.values())]
+        if working and seconds > min(rates.period(r) for r in working):
+            self.tick_overruns += 1
+
+    def _tick(self, ticking: frozenset[str], t: float) -> None:
+        updated: set[str] = set()
+        for block in list(self.blocks.values()):
+            if ticking.isdisjoint(block.rates):
+                continue
+            values: dict[str, float] = {}
+            bad: tuple[str, str] | None = None
+            for name in block.inputs:
+                ch = self._channels.get(name)
+                if ch is None:
+                    bad = (STALE, f"input {name} has no value yet")
+                    break
+                status, reason = ch.status_at(t)
+                if status != OK:
+                    bad = (status, f"input {name} is {status}: {reason}")
+                    break
+                values[name] = ch.value  # type: ignore[assignment]
+            if bad is not None:
+                for out in block.outputs:
+                    self._channels[out].mark(*bad)
+                continue
+            started = time.perf_counter()
+            try:
+                outputs = block.step(t, values, ticking)
+            except ArithmeticError as exc:
+                self.block_errors[block.name] += 1
+                for out in block.outputs:
+                    self._channels[out].mark(INVALID, f"{type(exc).__name__}: {exc}")
+                continue
+            finally:
+                spent = self.step_time.get(block.name)
+                if spent is None:
+                    spent = self.step_time[block.name] = [0.0, 0]
+                spent[0] += time.perf_counter() - started
+                spent[1] += 1
+            reasons = block.errors
+            for out, value in outputs.items():
+                ch = self._channels[out]
+                ch.update(float(value), t)
+                if ch.status != OK:
+                    self.block_errors[block.name] += 1
+                    if not math.isfinite(ch.value):
+                        self.withheld[out] += 1  # _emit keeps it off the bus
+                    if out in reasons:
+                        ch.mark(INVALID, reasons[out])
+                updated.add(out)
+        if updated:
+            self._emit(updated, t)
+
+    def _emit(self, updated: set[str], t: float) -> None:
+        """Queue a DBC frame for each output message that carries an updated signal."""
+        for message in self.db.messages_carrying(set(self.producer)):
+            names = [s.name for s in message.signals]
+            if not updated.intersection(names):
+                continue
+            if not all(self.blocks[self.producer[n]].on_bus for n in names):
+                continue  # e.g. a disabled controller: its demand stays off the bus
+            chans = [self._channels[n] for n in names]
+            if any(c.status != OK or c.value is None for c in chans):
+                continue  # a stale or invalid output is not put on the bus
+            self.outbox.append(self.db.encode(message.name, {c.name: c.value for c in chans}, t))
+
+    def _after_med_tick(self, t: float) -> None:
+        rows = []
+        for ch in self._channels.values():
+            status, _ = ch.status_at(t)
+            rows.append((ch.name, ch.value if status == OK else None, status))
+        self._history.record(t, rows)
+        for listener in self.tick_listeners:
+            listener(t)
+
+    def take_outbox(self) -> list[can.Message]:
+        with self.lock:
+            out, self.outbox = self.outbox, []
+            return out
+
+    # -- views ----------------------------------------------------------------------
+    def snapshot(self) -> list[dict[str, Any]]:
+        with self.lock:
+            self._flush()
+            now = self.now
+            return [ch.snapshot(now) for ch in sorted(self._channels.values(), key=lambda c: c.name)]
+
+    def channel(self, name: str) -> Channel:
+        ch = self.channels.get(name)
+        if ch is None:
+            raise UnknownBlockError("channel", name, sorted(self._channels))
+        return ch
+
+    def history(self, name: str, seconds: float) -> list[tuple[float, float | None, str]]:
+        with self.lock:
+            self.channel(name)  # 404 for an unknown channel
+            return self._history.series(name, seconds)
+
+    def unknown_id_counts(self, top: int = 32) -> dict[str, int]:
+        """The most frequent frame IDs that no DBC defines, as ``"0x123"`` (``x`` suffix:
+        extended) -> frames."""
+        with self.lock:
+            return {f"0x{i:X}{'x' if ext else ''}": n
+                    for (i, ext), n in self.unknown_ids.most_common(top)}
+
+    def health(self) -> dict[str, Any]:
+        with self.lock:
+            return {
+                "frames": self.frames,
+                "frames_per_s": self.frames_per_second(),
+                "decode_errors": dict(self.decode_errors),
+                "late_frames": self.late_frames,
+                "unknown_ids": self.unknown_id_counts(),
+                "block_errors": dict(self.block_errors),
+                "streams": {r.layout.name: r.tracker.counts.as_dict() for r in self._streams.values()},
+                "withheld": dict(self.withheld),
+                "tick_overruns": self.tick_overruns,
+                "last_frame_time": self.last_frame_time,
+                "bus_time": self.now,
+            }
+
+
+__all__ = ["FRAME_ERROR_KINDS", "Rates", "Runtime"]

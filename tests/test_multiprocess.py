@@ -1,9 +1,10 @@
 """The cell as separate processes over udp_multicast: simulator, runtime + API, python-can tools.
 
 These tests start real processes (``testcell up``, ``python -m can.logger``/``can.player``)
-and talk to the API over HTTP. udp_multicast must stay on this machine: they run when the
-cell's multicast group is routed over loopback (``scripts/setup-multicast.sh``, which the
-README's test command runs when it can).
+and talk to the API over HTTP, on a multicast group and port of this test process's own
+(:mod:`tests.helpers.buses`), so another cell on the machine's default group never reaches
+them. udp_multicast must stay on this machine: they run when the tests' groups are routed
+over loopback (``scripts/setup-multicast.sh``, which the README's test command runs).
 """
 
 from __future__ import annotations
@@ -25,27 +26,18 @@ import can
 import numpy as np
 import pytest
 
-from cell.bus.interface import MULTICAST_GROUP
 from cell.bus.dbc import load
+from tests.helpers.buses import NOT_ROUTED, private_bus, private_group, routed_over_loopback
 
 pytestmark = pytest.mark.multiprocess
 
 
-def _multicast_on_loopback() -> bool:
-    try:
-        out = subprocess.run(["ip", "route", "get", MULTICAST_GROUP], capture_output=True, text=True)
-    except FileNotFoundError:
-        return False
-    return " dev lo " in out.stdout
+if not routed_over_loopback():
+    pytest.skip(NOT_ROUTED, allow_module_level=True)
 
-
-if not _multicast_on_loopback():
-    pytest.skip(
-        f"multicast group {MULTICAST_GROUP} is not routed over loopback; run "
-        "scripts/setup-multicast.sh as root (scripts/test.sh does) so udp_multicast stays on "
-        "this machine", allow_module_level=True)
-
-BUS = "udp_multicast"
+#: this test process's own group and port: never the default group other cells use
+BUS = private_bus()
+GROUP, GROUP_PORT = private_group()
 PY = sys.executable
 
 
@@ -156,7 +148,8 @@ class CanLogger:
         self.err = path.with_name(path.name + ".stderr")
         with open(self.err, "w") as err:
             self.proc = subprocess.Popen(
-                [PY, "-m", "can.logger", "-i", BUS, "-c", MULTICAST_GROUP, "-f", str(path)],
+                [PY, "-m", "can.logger", "-i", "udp_multicast", "-c", GROUP, "-f", str(path),
+                 "--bus-kwargs", f"port={GROUP_PORT}"],
                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err,
                 preexec_fn=_default_sigint, start_new_session=True)
         # can.logger opens its file only after it has joined the group, so once the file
@@ -307,7 +300,8 @@ def test_played_log_through_live_runtime_agrees_with_replay(recorded, tmp_path):
     logger = None
     try:
         logger = CanLogger(cap)
-        subprocess.run([PY, "-m", "can.player", "-i", BUS, "-c", MULTICAST_GROUP, str(inject)],
+        subprocess.run([PY, "-m", "can.player", "-i", "udp_multicast", "-c", GROUP, "--bus-kwargs",
+                        f"port={GROUP_PORT}", str(inject)],
                        check=True, timeout=120, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         time.sleep(1.0)
         logger.stop()

@@ -10,6 +10,7 @@ import numpy as np
 from cell.analysis.scores import truth_scores
 from cell.bus.dbc import load
 from cell.sim.lockstep import Lockstep
+from cell.core import registry
 from cell.core.registry import Experiment
 from cell.runtime.scheduler import Runtime
 from cell.sim.simulator import Simulator
@@ -20,7 +21,7 @@ from .plant import Oscillator
 
 def run(seconds: float, seed: int = 0) -> dict[str, float]:
     """RMSE of the observed velocity and of the raw position, scored after 5 s."""
-    db = load()
+    db = load(registry.DBC_FILES)  # the cell's own files and the plugin's toy.dbc
     sim = Simulator(Oscillator.composition(seed), db)
     rt = Runtime(db, [toy_observer()])
     rows = []

@@ -9,15 +9,9 @@ import numpy as np
 import pytest
 
 from cell.runtime.blocks import Block
-from cell.bus.dbc import load
 from cell.core.errors import ConfigError
 from cell.runtime.scheduler import Runtime
 from cell.runtime.samples import StreamLayout, StreamTracker, find_streams
-
-
-@pytest.fixture(scope="module")
-def db():
-    return load()
 
 
 def test_the_crank_dbc_defines_four_streams_of_four_6_deg_samples(db):

@@ -18,9 +18,9 @@ from cell.core.errors import ConfigError
 from cell.estimators.backpressure import MovingAverage
 from cell.runtime.scheduler import Runtime
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[2] / "data" / "dbc"
 USER = DATA / "user.dbc"
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 EEC1_ID = 0x0CF004FE  # J1939 EEC1 from source 0xFE, an extended frame
 
 
@@ -75,7 +75,8 @@ def test_registered_dbc_files_are_loaded(tmp_path, clean_registry):
     own = cell_dbc_paths()
     assert own[0] == default_dbc_path() and USER not in own
     registry.dbc_file(USER)
-    db = load()
+    assert load().files == own  # the catalogue is handed the registered files, it does not look
+    db = load(registry.DBC_FILES)
     assert db.files == [*own, USER]
     assert db.signals["DAQ_OIL_TEMP"].file == USER and db.signals["DAQ_OIL_TEMP"].unit == "degC"
     registry.DBC_FILES.clear()

@@ -17,7 +17,7 @@ from cell.scripts import (
 )
 from cell.runtime.scheduler import Rates, Runtime
 
-from .listings import FDV
+from tests.helpers.listings import FDV
 
 ERRS = """[init]
 dim acc

@@ -50,7 +50,7 @@ def _expected():
 def test_kill_9_mid_write_leaves_the_old_or_the_new_file(tmp_path):
     versions, scripts = _expected()
     rng = random.Random(13)
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[3])}
     mid_write = 0
     for i in range(KILLS):
         proc = subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path)], stdout=subprocess.PIPE,
@@ -124,7 +124,7 @@ def test_kill_9_of_the_running_service_mid_patch_keeps_a_whole_file(tmp_path):
 
     rng = random.Random(7)
     state = tmp_path / "tuning.json"
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[3])}
     env.pop("TESTCELL_TOKEN", None)
     scripts = {f"[formulas]\npublic MINE\nMINE = EXH_BP_R * {k}\n" for k in range(1000)}
     q_sent = 0

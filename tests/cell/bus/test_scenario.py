@@ -17,7 +17,7 @@ from cell.runtime.scheduler import Runtime
 from cell.bus.scenario import parse_assignments, scenario_frames, scenario_keys
 from service.main import create_app
 
-RIG = Path(__file__).parent / "data" / "scenario.dbc"
+RIG = Path(__file__).resolve().parents[2] / "data" / "dbc" / "scenario.dbc"
 
 
 @pytest.fixture(scope="module")

@@ -1,12 +1,12 @@
 """Bus selection, echo dropping and the one-line errors of cell.bus.interface."""
 
-import subprocess
 
 import can
 import pytest
 
 from cell.bus import interface as cellbus
 from cell.bus.interface import MULTICAST_GROUP, BusSpec, CellBus, open_bus, resolve
+from tests.helpers.buses import NOT_ROUTED, private_bus, routed_over_loopback
 from cell.core.errors import BusError
 
 
@@ -74,18 +74,9 @@ def test_own_echoes_are_dropped_but_identical_foreign_frames_are_not():
     assert b.recv(0).arbitration_id == 0x101
 
 
-def _multicast_on_loopback():
-    try:
-        out = subprocess.run(["ip", "route", "get", MULTICAST_GROUP], capture_output=True, text=True)
-    except FileNotFoundError:
-        return False
-    return " dev lo " in out.stdout
-
-
-@pytest.mark.skipif(not _multicast_on_loopback(),
-                    reason="multicast group not routed over loopback (scripts/setup-multicast.sh)")
+@pytest.mark.skipif(not routed_over_loopback(), reason=NOT_ROUTED)
 def test_udp_multicast_between_two_buses_without_echo():
-    a, b = open_bus("udp_multicast"), open_bus("udp_multicast")
+    a, b = open_bus(private_bus()), open_bus(private_bus())  # never the default group
     try:
         msg = can.Message(arbitration_id=0x200, data=b"\x10\x27\x10\x27", is_extended_id=False)
         a.send(msg)

@@ -9,7 +9,7 @@ from cell.core.errors import ParamError
 from cell.estimators.backpressure import native_filters
 from cell.plant import duty_cycle
 
-from .transient import run_cycle, time_to_63
+from tests.helpers.transient import run_cycle, time_to_63
 
 NAMES = ["EXH_BP_R_TRUE", "EXH_BP_R_MAF", "EXH_BP_R_Kalman", "EXH_BP_R_Adaptive"]
 SEEDS = (0, 1, 2)

@@ -9,6 +9,7 @@ import sys
 import pytest
 
 from cell.app import cli
+from service import up
 from cell import sim
 from cell.core.errors import ConfigError
 from cell.core.settings import Settings
@@ -61,12 +62,12 @@ def test_up_hands_the_simulator_every_simulator_option(monkeypatch):
         def __init__(self, cmd):
             started.append(cmd)
 
-    monkeypatch.setattr(cli.subprocess, "Popen", FakePopen)
+    monkeypatch.setattr(up.subprocess, "Popen", FakePopen)
     argv = ["up", "--bp-limit", "900", "--valve", "35", "--seed", "3", "--speed", "4",
             "--duty", "transient", "--duration", "60"]
     args = cli.build_parser().parse_args(argv)
     settings = Settings.from_args(args, environ={}).for_simulator()
-    cli._start_sim_process(settings, "udp_multicast:239.74.163.2")
+    up._start_sim_process(settings, "udp_multicast:239.74.163.2")
     cmd = started[0]
     assert cmd[:3] == [sys.executable, "-m", "cell"] and "sim" in cmd
     child = cli.build_parser().parse_args(cmd[3:])

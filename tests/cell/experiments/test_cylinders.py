@@ -8,18 +8,12 @@ import json
 import numpy as np
 import pytest
 
-from cell.bus.dbc import load
 from cell.experiments.cylinders import Case, lossy_wire, run_case, xcorr_lag
 from cell.plant.cylinders import N_CYL
 
 T_ON, DURATION = 1.5, 3.5
 #: engine cycles the diagnosis may take after the imbalance starts ("a few")
 MAX_CYCLES = 15.0
-
-
-@pytest.fixture(scope="module")
-def db():
-    return load()
 
 
 def _single(cyl: int, offset: float) -> Case:

@@ -12,7 +12,7 @@ import pytest
 from cell.estimators.backpressure import native_filters
 from cell.plant import duty_cycle
 
-from .transient import run_cycle, time_to_63
+from tests.helpers.transient import run_cycle, time_to_63
 
 NAMES = ["EXH_BP_R", "EXH_BP_R_TRUE", "EXH_BP_R_MAF", "EXH_BP_R_Kalman"]
 SEEDS = (0, 1, 2)

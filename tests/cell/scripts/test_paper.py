@@ -13,7 +13,7 @@ import pytest
 from cell.estimators.backpressure import ScalarKalman
 from cell.scripts import CyflexBlock, FdvBlock, ScriptError, load_script, shipped_scripts
 
-from .listings import FDV, FIG2_R, FIG3, FIG3_PRINTED
+from tests.helpers.listings import FDV, FIG2_R, FIG3, FIG3_PRINTED
 
 MED = frozenset({"MED"})
 

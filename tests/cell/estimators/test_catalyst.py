@@ -253,12 +253,12 @@ def test_osc_init_is_a_setting_of_up_and_replay(tmp_path):
     s = Settings.build({"osc_init": 0.7}, environ={})
     blocks = cli.build_runtime(Settings.build({"osc_init": 0.7, "engine": "si-turbo"},
                                               environ={}))[0].blocks
-    assert blocks["twc"].osc_init == 0.7 and s.osc_init == 0.7
-    assert Settings.build({}, environ={"TESTCELL_OSC_INIT": "1.4"}).osc_init == 1.4
+    assert blocks["twc"].osc_init == 0.7 and s.blocks["osc_init"] == 0.7
+    assert Settings.build({}, environ={"TESTCELL_OSC_INIT": "1.4"}).blocks["osc_init"] == 1.4
     from cell.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"--osc-init must be in \(0.05, 4\]"):
         Settings.build({"osc_init": 9.0}, environ={})
     parser = cli.build_parser()
     args = parser.parse_args(["replay", "x.log", "--out", "x.csv", "--osc-init", "0.8"])
-    assert Settings.from_args(args, environ={}).osc_init == 0.8
+    assert Settings.from_args(args, environ={}).blocks["osc_init"] == 0.8

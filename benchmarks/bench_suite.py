@@ -10,7 +10,7 @@ Rows (issue 13):
   over udp_multicast by another process and counted at the runtime; against classic CAN at
   1 Mbit/s (~9 000 frames/s of 8-byte frames). Goal: >= 45 000 frames/s.
 - **Script cycle**: seed 004's PUMA Kalman script against a hand-written Python filter and
-  filterpy (``benchmarks.bench_formula``).
+  filterpy (``benchmarks.bench_scripts``).
 - **Q/R sweep**: seed 004's Table 2 over an hour of samples, against filterpy in a loop and
   simdkalman (``bench_sweep.py``).
 - **Replay**: x real time, with every block loaded.
@@ -343,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     rates = [9_000, 20_000, 30_000, 45_000, 60_000]
     e2e = end_to_end(rates, 2.0 if args.quick else 5.0)
     print("script cycle ...", flush=True)
-    from benchmarks.bench_formula import main as script_bench
+    from benchmarks.bench_scripts import main as script_bench
 
     scripts = script_bench(5_000 if args.quick else 20_000)
     print("Q/R sweep ...", flush=True)

@@ -1,6 +1,7 @@
 """Two cells on one machine are isolated by multicast group and by port, and a clean stop
-logs no error. These use udp_multicast on groups and ports of their own (not the cell's
-default), so they do not meet other cells on this machine."""
+logs no error. These use udp_multicast on the test process's own group and port and their
+neighbours (:mod:`tests.helpers.buses`, never the cell's default), so they do not meet other
+cells on this machine."""
 
 import json
 import signal
@@ -15,9 +16,12 @@ import pytest
 
 from cell.bus.interface import BusSpec, open_bus, resolve
 from cell.core.errors import BusError
+from tests.helpers.buses import private_group
 
-GROUP_A, GROUP_B = "239.74.163.211", "239.74.163.212"
-PORT_A, PORT_B = 43211, 43212
+#: this test process's private group and port, and a neighbour of each
+GROUP_A, PORT_A = private_group()
+GROUP_B = GROUP_A.rsplit(".", 1)[0] + "." + str(int(GROUP_A.rsplit(".", 1)[1]) + 1)
+PORT_B = PORT_A + 1
 
 
 def test_bus_spec_takes_a_port():

@@ -12,7 +12,8 @@ from dataclasses import replace
 
 from cell.core import registry
 from cell.core.errors import ConfigError
-from cell.core.settings import Option, Settings, parse_bool
+from cell.core.options import Option, parse_bool
+from cell.core.registry import Run
 from cell.plant.composition import Composition
 from cell.plant.diesel import (
     CYCLES,
@@ -94,7 +95,7 @@ def _limit_check(v: float) -> str | None:
     return None
 
 
-def _build_large_diesel(s: Settings) -> Composition:
+def _build_large_diesel(s: Run) -> Composition:
     if s.duty not in CYCLES:
         raise ConfigError(f"--duty {s.duty!r} is not a duty cycle of large-diesel; choose one "
                           f"of: {', '.join(CYCLES)}")

@@ -36,7 +36,8 @@ from dataclasses import replace
 
 from cell.core import registry
 from cell.core.errors import ConfigError
-from cell.core.settings import Option, Settings
+from cell.core.options import Option
+from cell.core.registry import Run
 from cell.plant.base import Plant
 from cell.plant.catalyst import Catalyst, CatalystParams
 from cell.plant.composition import Composition
@@ -97,7 +98,7 @@ def si_turbo(
     return Composition(ENGINE_NAME, plants, eng.cycle.duration, about)
 
 
-def _build(s: Settings) -> Composition:
+def _build(s: Run) -> Composition:
     duty = s.duty or "ftp"
     if duty not in SI_CYCLES:
         raise ConfigError(f"--duty {duty!r} is not a duty cycle of {ENGINE_NAME}; choose one of: "

@@ -1,5 +1,6 @@
 """The repository's shape: layout, docker-compose structure, CLI wiring, README commands."""
 
+import os
 import shutil
 import subprocess
 import sys
@@ -77,3 +78,13 @@ def test_bad_bus_is_one_line_naming_the_fix(tmp_path):
     r = subprocess.run([sys.executable, "-m", "cell", "up", "--bus", "nosuchbus", "--no-sim"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "unknown bus" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_listing_into_a_closed_pipe_ends_quietly():
+    """``testcell experiment --list | head -1``: the reader leaves early; no traceback."""
+    r, w = os.pipe()
+    os.close(r)  # the reader is gone before the listing is written
+    proc = subprocess.run([sys.executable, "-m", "cell", "experiment", "--list"], stdout=w,
+                          stderr=subprocess.PIPE, text=True, timeout=60)
+    os.close(w)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr

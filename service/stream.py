@@ -174,7 +174,7 @@ class StreamHub:
         if not self.clients:
             return  # nobody listens: a tick costs nothing
         rows = {}
-        for ch in self.runtime._channels.values():
+        for ch in self.runtime.store.by_name.values():
             status, _ = ch.status_at(t)
             rows[ch.name] = (_clean(ch.value) if ch.value is not None else None, status, ch.t)
         with self._lock:
@@ -230,7 +230,7 @@ class StreamHub:
 
     def describe(self, names: Iterable[str]) -> list[dict[str, Any]]:
         """Name, unit and source of channels, for the ``subscribed`` answer."""
-        chans = self.runtime._channels
+        chans = self.runtime.store.by_name
         return [{"name": n, "unit": chans[n].unit, "source": chans[n].source}
                 for n in names if n in chans]
 

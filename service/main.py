@@ -35,16 +35,16 @@ def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
     )
     load_cell_parts()
     app.state.cell = cell
-    app.state.hub = StreamHub(cell.runtime)
-    app.state.frame_rates = FrameRates(cell.runtime)
-    settings = cell.extra.get("settings")
+    app.state.hub = StreamHub(cell)
+    app.state.frame_rates = FrameRates(cell)
+    settings = cell.settings
     security = security or (Security.from_settings(settings) if settings else Security())
     app.state.security = security
     app.add_middleware(SecurityMiddleware, security=security)
     errors.install(app)
     app.include_router(health.router)
     app.include_router(channels.router)
-    present = {b.family for b in cell.runtime.blocks.values()}
+    present = {f["name"] for f in cell.families() if f["blocks"]}
     for fam in registry.FAMILIES.values():
         if fam.name in present:
             router = block_router(fam)

@@ -11,7 +11,8 @@ from cell.app.cell import Cell
 
 from . import errors
 from .metrics import FrameRates
-from .routes import channels, engine, filters, health, metrics, page, scenario, scripts, simulator, stream
+from .routes import (channels, engine, families, filters, health, metrics, page, scenario, scripts,
+                     simulator, stream)
 from .schemas import ERROR_RESPONSES
 from .security import Security, SecurityMiddleware
 from .stream import StreamHub
@@ -44,6 +45,7 @@ def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
     errors.install(app)
     app.include_router(health.router)
     app.include_router(channels.router)
+    app.include_router(families.router)
     present = {f["name"] for f in cell.families() if f["blocks"]}
     for fam in registry.FAMILIES.values():
         if fam.name in present:

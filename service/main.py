@@ -11,7 +11,8 @@ from cell.app.cell import Cell
 
 from . import errors
 from .metrics import FrameRates
-from .routes import channels, engine, filters, health, metrics, page, scenario, scripts, simulator, stream
+from .routes import (channels, engine, families, filters, health, metrics, page, scenario, scripts,
+                     simulator, stream)
 from .schemas import ERROR_RESPONSES
 from .security import Security, SecurityMiddleware
 from .stream import StreamHub
@@ -35,16 +36,17 @@ def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
     )
     load_cell_parts()
     app.state.cell = cell
-    app.state.hub = StreamHub(cell.runtime)
-    app.state.frame_rates = FrameRates(cell.runtime)
-    settings = cell.extra.get("settings")
+    app.state.hub = StreamHub(cell)
+    app.state.frame_rates = FrameRates(cell)
+    settings = cell.settings
     security = security or (Security.from_settings(settings) if settings else Security())
     app.state.security = security
     app.add_middleware(SecurityMiddleware, security=security)
     errors.install(app)
     app.include_router(health.router)
     app.include_router(channels.router)
-    present = {b.family for b in cell.runtime.blocks.values()}
+    app.include_router(families.router)
+    present = {f["name"] for f in cell.families() if f["blocks"]}
     for fam in registry.FAMILIES.values():
         if fam.name in present:
             router = block_router(fam)

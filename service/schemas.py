@@ -72,6 +72,17 @@ class BlockOut(BaseModel):
     state: dict[str, Any]
 
 
+class FamilyOut(BaseModel):
+    """A block family: its resource ``/{section}``, what its blocks are, example PATCH
+    bodies, and the names of the cell's blocks of that family (empty: no such resource)."""
+
+    name: str = Field(description="the family, as blocks name it (``filter``, ``controller``, ...)")
+    section: str = Field(description="its resource: GET /{section}, GET and PATCH /{section}/{name}")
+    description: str
+    examples: list[dict[str, Any]] = Field(description="parameter changes a PATCH may send")
+    blocks: list[str] = Field(description="the cell's blocks of this family, in the order they run")
+
+
 class ErrorOut(BaseModel):
     """An error: ``detail`` says what was wrong and where (other fields by route)."""
 

@@ -25,8 +25,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from cell.runtime.channels import OK
-from cell.runtime.scheduler import Runtime
+from cell.app.cell import Cell
 
 #: records kept for all clients (10 s at 10 Hz)
 RING = 100
@@ -147,16 +146,16 @@ class StreamHub:
 
     Parameters
     ----------
-    runtime:
-        The runtime whose ticks are streamed; the hub adds itself to its tick listeners.
+    cell:
+        The cell whose ticks are streamed; the hub listens to its MED ticks.
     ring:
         Records kept for all clients.
     backlog:
         Default number of records a client may lag before older ones are dropped.
     """
 
-    def __init__(self, runtime: Runtime, ring: int = RING, backlog: int = BACKLOG) -> None:
-        self.runtime = runtime
+    def __init__(self, cell: Cell, ring: int = RING, backlog: int = BACKLOG) -> None:
+        self.cell = cell
         self.backlog = max(1, min(backlog, ring))
         self.records: collections.deque[Record] = collections.deque(maxlen=max(1, ring))
         self.seq = 0
@@ -166,17 +165,15 @@ class StreamHub:
         #: set by :meth:`close`: every stream ends (the server is shutting down)
         self.closed = False
         self._lock = threading.Lock()
-        runtime.tick_listeners.append(self.on_tick)
+        cell.on_tick(self.on_tick)
 
     # -- the runtime's side -----------------------------------------------------------
     def on_tick(self, t: float) -> None:
         """Record the tick (runtime thread, runtime lock held) and wake the serving loops."""
         if not self.clients:
             return  # nobody listens: a tick costs nothing
-        rows = {}
-        for ch in self.runtime._channels.values():
-            status, _ = ch.status_at(t)
-            rows[ch.name] = (_clean(ch.value) if ch.value is not None else None, status, ch.t)
+        _, readings = self.cell.readings(at=t)
+        rows = {name: (_clean(value), status, at) for name, (value, status, at) in readings.items()}
         with self._lock:
             self.seq += 1
             self.records.append(Record(self.seq, t, rows))
@@ -230,24 +227,13 @@ class StreamHub:
 
     def describe(self, names: Iterable[str]) -> list[dict[str, Any]]:
         """Name, unit and source of channels, for the ``subscribed`` answer."""
-        chans = self.runtime._channels
-        return [{"name": n, "unit": chans[n].unit, "source": chans[n].source}
-                for n in names if n in chans]
+        return self.cell.describe_channels(names)
 
-    def current(self, names: Iterable[str]) -> dict[str, list]:
-        """Every named channel's latest value, status and time now (the first message)."""
-        rt = self.runtime
-        with rt.lock:
-            now = rt.now
-            chans = rt.channels
-            out = {}
-            for n in names:
-                ch = chans.get(n)
-                if ch is not None:
-                    status, _ = ch.status_at(now)
-                    value = _clean(ch.value) if status == OK or ch.value is not None else None
-                    out[n] = [value, status, ch.t]
-            return out
+    def current(self, names: Iterable[str]) -> tuple[float | None, dict[str, list]]:
+        """The bus time now and every named channel's latest value, status and time then
+        (the ``snapshot`` message)."""
+        now, readings = self.cell.readings(names)
+        return now, {n: [_clean(value), status, at] for n, (value, status, at) in readings.items()}
 
     @property
     def dropped(self) -> int:

@@ -113,8 +113,8 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
             else:
                 sim_proc = _start_sim_process(settings, str(spec))
         live = LiveCell(runtime, bus).start()
-        cell = Cell(runtime=runtime, bus=str(spec), tuning=store, live=live,
-                    extra={"scripts": scripts, "settings": settings})
+        cell = Cell(runtime=runtime, bus=str(spec), settings=settings, scripts=scripts,
+                    tuning=store, live=live)
         log.info("testcell %s on %s; API on http://%s:%d (tuning file %s)",
                  __version__, spec, settings.host, settings.port, store.path)
         serve(create_app(cell), host=settings.host, port=settings.port,

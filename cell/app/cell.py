@@ -1,25 +1,139 @@
-"""What one running cell is made of: its runtime, bus, tuning store and live loop."""
+"""What one running cell is made of, and what the HTTP service may ask of it.
+
+:class:`Cell` is the service's façade: its runtime, the bus it runs on, the settings it was
+started with, its scripts, its tuning store and its live loop. Every question the service
+asks (channels, their history, blocks, the health counts) and every command it gives
+(tuning, frames for the bus, a scenario, an engine reset) goes through a method that takes
+the runtime's lock itself, so the service never holds the lock nor reads the runtime's parts.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Any
 
-from cell.core import registry
+import can
+
 from cell.app.live import LiveCell
-from cell.runtime.scheduler import Runtime
 from cell.app.tuning import TuningStore
+from cell.bus.scenario import describe_frames, scenario_frames, scenario_keys
+from cell.core import registry
+from cell.core.settings import Settings
+from cell.runtime import supervision
+from cell.runtime.blocks import Block
+from cell.runtime.scheduler import Runtime
+from cell.runtime.store import Reading
+from cell.scripts.manager import ScriptManager
 
 
 @dataclass
 class Cell:
-    """Everything the HTTP service needs to show and tune a cell."""
+    """Everything the HTTP service needs to show, tune and command a cell.
+
+    ``bus`` names the bus (``virtual:x``, ``socketcan:vcan0``, ``none``); ``settings`` are
+    those the cell was started with (``None`` when ``testcell up`` did not start it);
+    ``scripts`` is its script manager (``None``: the cell runs no scripts).
+    """
 
     runtime: Runtime
     bus: str = "none"
+    settings: Settings | None = None
+    scripts: ScriptManager | None = None
     tuning: TuningStore | None = None
     live: LiveCell | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+
+    # -- bus time ---------------------------------------------------------------------
+    @property
+    def now(self) -> float | None:
+        """The runtime's bus time (``None`` before the first frame)."""
+        with self.runtime.lock:
+            return self.runtime.now
+
+    def bus_time(self) -> float | None:
+        """The bus time now: the live loop's estimate while it runs, else the runtime's."""
+        with self.runtime.lock:
+            now = self.runtime.now
+            if self.live is not None:
+                est = self.live.estimated_bus_time()
+                now = est if est is not None else now
+            return now
+
+    def period(self, task: str) -> float:
+        """Seconds between two ticks of a task (``FAS``, ``MED`` or ``SLO``)."""
+        return self.runtime.rates.period(task)
+
+    # -- channels ---------------------------------------------------------------------
+    def snapshot(self) -> list[dict[str, Any]]:
+        """Every channel as seen now, by name: value, unit, bus time, status and source."""
+        return self.runtime.snapshot()
+
+    def channel(self, name: str) -> dict[str, Any]:
+        """One channel as seen now; :class:`~cell.core.errors.UnknownBlockError` if none."""
+        rt = self.runtime
+        with rt.lock:
+            return rt.channel(name).snapshot(rt.now)
+
+    def channel_names(self) -> list[str]:
+        """The name of every channel, sorted."""
+        with self.runtime.lock:
+            return sorted(self.runtime.channels)
+
+    def describe_channels(self, names: Iterable[str]) -> list[dict[str, Any]]:
+        """Name, unit and source of each of ``names`` that is a channel, in that order."""
+        with self.runtime.lock:
+            chans = self.runtime.channels
+            return [{"name": n, "unit": chans[n].unit, "source": chans[n].source}
+                    for n in names if n in chans]
+
+    def history(self, name: str, seconds: float) -> list[tuple[float, float | None, str]]:
+        """``(time, value or None, status)`` of a channel at each MED tick of the last
+        ``seconds`` of bus time."""
+        return self.runtime.history(name, seconds)
+
+    def readings(self, names: Iterable[str] | None = None,
+                 at: float | None = None) -> tuple[float | None, dict[str, Reading]]:
+        """The bus time ``at`` (default: now) and, as seen then, the value, status and bus
+        time of the value of every channel, or of those of ``names`` that exist."""
+        rt = self.runtime
+        with rt.lock:
+            t = rt.now if at is None else at
+            return t, rt.readings(names, at=t)
+
+    def on_tick(self, listener: Callable[[float], None]) -> None:
+        """Call ``listener(t)`` after every MED tick, in the runtime's thread, lock held."""
+        with self.runtime.lock:
+            self.runtime.tick_listeners.append(listener)
+
+    # -- blocks -----------------------------------------------------------------------
+    def families(self) -> list[dict[str, Any]]:
+        """Every registered block family: its name, its HTTP section, what its blocks are,
+        example parameter changes, and the names of this cell's blocks of that family."""
+        with self.runtime.lock:
+            return [{"name": fam.name, "section": fam.section, "description": fam.description,
+                     "examples": [dict(e) for e in fam.examples], "blocks": self.names(fam.name)}
+                    for fam in registry.FAMILIES.values()]
+
+    def names(self, family: str) -> list[str]:
+        """The names of the cell's blocks of ``family``, in the order they run."""
+        with self.runtime.lock:
+            return [b.name for b in self.runtime.blocks.values() if b.family == family]
+
+    def find(self, family: str, name: str) -> Block:
+        """The block ``name`` of ``family``; :class:`~cell.core.errors.UnknownBlockError`
+        naming the family's blocks if there is none."""
+        return self.runtime.block(name, family)
+
+    def block(self, family: str, name: str) -> dict[str, Any]:
+        """A block of ``family`` as the API shows it: kind, rates, inputs, outputs,
+        parameters and state."""
+        with self.runtime.lock:
+            return self.find(family, name).describe()
+
+    def blocks(self, family: str) -> list[dict[str, Any]]:
+        """Every block of ``family``, described as :meth:`block` does."""
+        with self.runtime.lock:
+            return [self.runtime.block(n).describe() for n in self.names(family)]
 
     def tune(self, family: str, name: str, changes: dict[str, Any]) -> dict[str, Any]:
         """Apply a parameter change to a block of ``family`` and save it; all or nothing."""
@@ -36,11 +150,69 @@ class Cell:
                     raise
             return params
 
-    def find(self, family: str, name: str):
-        return self.runtime.block(name, family)
+    # -- commands to the bus ----------------------------------------------------------
+    def send(self, frames: Iterable[can.Message]) -> None:
+        """Put frames on the bus with the runtime's next outputs."""
+        self.runtime.send(frames)
 
-    def names(self, family: str) -> list[str]:
-        return [b.name for b in self.runtime.blocks.values() if b.family == family]
+    def scenario_keys(self) -> list[dict[str, Any]]:
+        """Every scenario key of the DBC files: the signal it sets, its range, unit and
+        start value."""
+        return [k.describe() for k in scenario_keys(self.runtime.db).values()]
+
+    def send_scenario(self, values: dict[str, Any]) -> list[dict[str, Any]]:
+        """Encode the scenario message(s) carrying ``values`` at the bus time now and put
+        them on the bus; returns what was sent. A bad key or value raises and sends nothing."""
+        rt = self.runtime
+        with rt.lock:
+            frames = scenario_frames(rt.db, values, self.bus_time() or 0.0)
+            rt.send(frames)
+        return describe_frames(rt.db, frames)
+
+    def trip(self) -> dict[str, Any] | None:
+        """The engine's trip as the bus shows it (``None``: running, or not known)."""
+        return supervision.trip(self.runtime)
+
+    def reset_trip(self) -> int:
+        """Send ``ENGINE_RESET`` with a new counter value; returns the value sent."""
+        return supervision.reset_trip(self.runtime)
+
+    # -- health -----------------------------------------------------------------------
+    def health(self) -> dict[str, Any]:
+        """Status and reasons, the engine's trip, the bus, whether the live loop runs, and
+        the runtime's counts (frames, bad frames, blocks' errors, streams, overruns)."""
+        rt = self.runtime
+        with rt.lock:
+            counts = rt.health()
+            return {**supervision.assess(rt, self.live), "bus": self.bus,
+                    "runtime_running": self.live.running if self.live else False, **counts}
+
+    def frames_by_id(self) -> dict[tuple[int, bool], int]:
+        """Frames received so far per ``(arbitration ID, extended)``, known or not."""
+        with self.runtime.lock:
+            return dict(self.runtime.frames_by_id)
+
+    def metrics(self) -> dict[str, Any]:
+        """The counts ``/metrics`` shows, taken at one instant: frames by ID (with the
+        DBC message name of each known ID), bad frames by kind, late frames, ticks, overruns,
+        the slowest tick, each block's step time and errors, and the bus time."""
+        rt = self.runtime
+        with rt.lock:
+            by_id = dict(rt.frames_by_id)
+            known = rt.db.by_id
+            return {
+                "frames_by_id": by_id,
+                "messages": {k: known[k].name for k in by_id if k in known},
+                "decode_errors": dict(rt.decode_errors),
+                "late_frames": rt.late_frames,
+                "ticks": rt.ticks,
+                "tick_overruns": rt.tick_overruns,
+                "tick_seconds_max": rt.tick_seconds_max,
+                "steps": [{"block": n, "family": rt.blocks[n].family, "seconds": secs, "count": count}
+                          for n, (secs, count) in sorted(rt.step_time.items()) if n in rt.blocks],
+                "block_errors": dict(rt.block_errors),
+                "bus_time": rt.now,
+            }
 
 
 __all__ = ["Cell"]

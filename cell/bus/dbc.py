@@ -9,7 +9,7 @@ name defined in two files is refused, naming both.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -204,6 +204,11 @@ class CellDatabase:
     def messages(self) -> list[Message]:
         """Every message of every file, in file order."""
         return list(self._by_name.values())
+
+    @property
+    def by_id(self) -> Mapping[tuple[int, bool], Message]:
+        """Every message by ``(frame ID, extended)``; read only (the codec's own table)."""
+        return self._by_id
 
     def file_of(self, message_name: str) -> Path:
         """The DBC file that defines a message."""

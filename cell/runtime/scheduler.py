@@ -5,11 +5,15 @@ timestamp order; before a frame stamped ``ts`` is applied, every tick due strict
 ``ts`` runs, so at each tick an input's value is the latest frame value at or before the
 tick. The same object runs live (:mod:`cell.app.live`) and offline (:mod:`cell.runtime.replay`), so a
 log replayed at any speed gives the numbers the live cell gave.
+
+The runtime is made of three parts: the scheduler here (ticks, blocks, decoding and routing
+of frames), its channels (:class:`~cell.runtime.store.ChannelStore`: values, history,
+staleness) and its counts (:class:`~cell.runtime.health.HealthCounters`: frames, bad
+frames, overruns, the ``/health`` answer).
 """
 
 from __future__ import annotations
 
-import collections
 import math
 import threading
 import time
@@ -21,23 +25,15 @@ import can
 
 from cell.runtime import units
 from cell.runtime.blocks import RATE_NAMES, Block
-from cell.runtime.channels import INVALID, OK, STALE, Channel, History
-from cell.bus.dbc import DECODE_ERROR_KINDS, CellDatabase, FrameDecodeError
+from cell.runtime.channels import INVALID, OK, STALE, Channel
+from cell.bus.dbc import CellDatabase, FrameDecodeError
 from cell.core.errors import ConfigError, UnknownBlockError
+from cell.runtime.health import (FRAME_ERROR_KINDS, MAX_COUNTED_IDS, MAX_UNKNOWN_IDS, OTHER_IDS,
+                                 HealthCounters)
 from cell.runtime.samples import StreamLayout, StreamTracker, find_streams
+from cell.runtime.store import ChannelStore, Reading
 
 _EPS = 1e-9
-#: distinct arbitration IDs counted one by one (``Runtime.frames_by_id``); frames of further
-#: IDs are counted together under :data:`OTHER_IDS`, so a bus of random IDs stays bounded
-MAX_COUNTED_IDS = 1024
-OTHER_IDS = (-1, False)
-
-#: Kinds of bad frame counted in ``/health``: the decoder's, plus remote and error frames
-#: (which carry no signal values).
-FRAME_ERROR_KINDS = (*DECODE_ERROR_KINDS, "remote_frame", "error_frame")
-
-#: How many distinct unknown frame IDs are remembered (a fuzzed bus has millions).
-MAX_UNKNOWN_IDS = 256
 
 
 @dataclass(frozen=True)
@@ -87,6 +83,18 @@ class _StreamRoute:
         self.blocks: list[Block] = []
 
 
+def _counted(name: str, doc: str) -> property:
+    """A count of the runtime's :class:`~cell.runtime.health.HealthCounters`, read and set
+    through the runtime."""
+    def get(self: Runtime) -> Any:
+        return getattr(self.counters, name)
+
+    def set_(self: Runtime, value: Any) -> None:
+        setattr(self.counters, name, value)
+
+    return property(get, set_, doc=doc)
+
+
 class Runtime:
     """Channels, blocks and the tick scheduler of one cell.
 
@@ -94,6 +102,10 @@ class Runtime:
     those crank-angle streams (:mod:`cell.runtime.samples`), in angle order, as each frame is
     applied (between ticks, on bus time); lost, reordered and late frames are counted per
     stream in :meth:`health` and gaps are reported to the blocks (:meth:`Block.gap`).
+
+    The channels live in :attr:`store` (:class:`~cell.runtime.store.ChannelStore`), the
+    counts in :attr:`counters` (:class:`~cell.runtime.health.HealthCounters`); the runtime
+    reads and counts into both under its :attr:`lock`.
 
     Parameters
     ----------
@@ -110,6 +122,18 @@ class Runtime:
         declared lost (a reordering this deep is put right).
     """
 
+    frames = _counted("frames", "frames applied, good or bad")
+    late_frames = _counted("late_frames", "frames stamped earlier than the newest one applied")
+    decode_errors = _counted("decode_errors", "bad frames by kind (:data:`FRAME_ERROR_KINDS`)")
+    unknown_ids = _counted("unknown_ids", "frames whose ID no DBC file defines, by ID")
+    block_errors = _counted("block_errors", "failed block steps, by block")
+    withheld = _counted("withheld", "outputs withheld from the bus for not being finite, by channel")
+    frames_by_id = _counted("frames_by_id", "frames received per (arbitration ID, extended)")
+    ticks = _counted("ticks", "ticks that had work")
+    tick_overruns = _counted("tick_overruns", "ticks whose work took longer than their period")
+    tick_seconds_max = _counted("tick_seconds_max", "wall seconds of the slowest tick so far")
+    step_time = _counted("step_time", "per block: [wall seconds spent in step, steps]")
+
     def __init__(
         self,
         db: CellDatabase,
@@ -122,8 +146,9 @@ class Runtime:
         self.rates = rates or Rates()
         self.lock = threading.RLock()
         self.history_len = max(1, int(round(history_s * self.rates.MED)))
-        self._history = History(self.history_len)
-        self._channels: dict[str, Channel] = {}
+        # an input goes stale by the third MED tick after its frames stop
+        self.store = ChannelStore(db, self.history_len, stale_floor=1.5 / self.rates.MED)
+        self.counters = HealthCounters()
         #: newest undecoded frame per message: frames are decoded when a tick or a reader
         #: needs their values, so the ten frames of a 100 Hz message between two 10 Hz
         #: ticks cost one decode, not ten
@@ -132,36 +157,12 @@ class Runtime:
         self.producer: dict[str, str] = {}
         self.outbox: list[can.Message] = []
         self.tick_listeners: list[Callable[[float], None]] = []
-        self.frames = 0
-        self.late_frames = 0
-        self.decode_errors: collections.Counter[str] = collections.Counter(
-            {k: 0 for k in FRAME_ERROR_KINDS}
-        )
-        #: frames whose ID no DBC file defines, by ID (at most MAX_UNKNOWN_IDS distinct IDs)
-        self.unknown_ids: collections.Counter[tuple[int, bool]] = collections.Counter()
-        self.block_errors: collections.Counter[str] = collections.Counter()
-        #: outputs withheld from the bus because a block produced NaN or inf, by channel
-        self.withheld: collections.Counter[str] = collections.Counter()
         #: small state kept for the service between requests (trip onset, reset counter)
         self.extra_state: dict[str, Any] = {}
         self.last_frame_time: float | None = None
         self.last_tick_time: float | None = None
-        self._frame_times: collections.deque[float] = collections.deque(maxlen=20_000)
-        # -- metrics (GET /metrics): counted here, formatted by service.metrics ------------
-        #: frames received per (arbitration ID, extended), known or not
-        self.frames_by_id: dict[tuple[int, bool], int] = {}
-        #: ticks whose work (block steps and MED listeners) took longer than their period
-        self.tick_overruns = 0
-        #: ticks that had work (every MED tick; FAS and SLO ticks when a block runs at them)
-        self.ticks = 0
-        #: wall seconds of the slowest tick so far
-        self.tick_seconds_max = 0.0
-        #: per block: [wall seconds spent in step, steps]
-        self.step_time: dict[str, list[float]] = {}
         self._next_index: dict[str, int] | None = None
         self._next_due: float | None = None
-        # an input goes stale by the third MED tick after its frames stop
-        self._stale_floor = 1.5 / self.rates.MED
         #: frame key -> the sample stream it carries, for streams some block consumes
         self._streams: dict[tuple[int, bool], _StreamRoute] = {}
         self._stream_window = stream_window
@@ -193,8 +194,9 @@ class Runtime:
                 self._stream_route(layout).blocks.append(block)
             for out in block.outputs:
                 self.producer[out] = block.name
-                unit = units.resolve(self.db, block, out, self._unit_of)  # DBC, declared, else its one input's
-                ch = self._channel(out, source=block.name)
+                # DBC, declared, else its one input's
+                unit = units.resolve(self.db, block, out, self.store.unit_of)
+                ch = self.store.add(out, source=block.name)
                 ch.unit = ch.unit or unit
 
     def remove_block(self, name: str) -> Block:
@@ -202,21 +204,16 @@ class Runtime:
         with self.lock:
             block = self.block(name)
             del self.blocks[name]
-            self.block_errors.pop(name, None)
+            self.counters.forget_block(name)
             for key, route in list(self._streams.items()):
                 route.blocks = [b for b in route.blocks if b is not block]
                 if not route.blocks:
                     del self._streams[key]
             for out in block.outputs:
                 self.producer.pop(out, None)
-                self._channels.pop(out, None)
-                self._history.drop(out)
-                self.withheld.pop(out, None)
+                self.store.drop(out)
+                self.counters.forget_output(out)
             return block
-
-    def _unit_of(self, channel: str) -> str | None:
-        ch = self._channels.get(channel)
-        return ch.unit if ch is not None else None
 
     def _stream_layout(self, stream: str, block: str) -> StreamLayout:
         """The layout of a sample stream the DBC defines; refuse one it does not."""
@@ -241,10 +238,11 @@ class Runtime:
         try:
             values = self.db.decode_payload(message, bytes(data))
         except FrameDecodeError as exc:
-            self.decode_errors[exc.kind] += 1
+            self.counters.count_decode_error(exc.kind)
             return
         index, samples = route.layout.unpack(values)
         name = route.layout.name
+        block_errors = self.counters.block_errors
         for event in route.tracker.push(index, samples, ts):
             for block in route.blocks:
                 try:
@@ -253,7 +251,7 @@ class Runtime:
                     else:
                         block.gap(name, event[1], event[2], event[3])
                 except ArithmeticError:
-                    self.block_errors[block.name] += 1
+                    block_errors[block.name] += 1
 
     def block(self, name: str, family: str | None = None) -> Block:
         block = self.blocks.get(name)
@@ -267,24 +265,7 @@ class Runtime:
         with self.lock:
             return self.block(name, family).set_params(changes)
 
-    # -- channels -------------------------------------------------------------------
-    def _channel(self, name: str, source: str = "bus") -> Channel:
-        ch = self._channels.get(name)
-        if ch is None:
-            info = self.db.signals.get(name)
-            stale_after = math.inf
-            if source == "bus":
-                cycle = info.cycle_time_s if info and info.cycle_time_s else 0.0
-                stale_after = max(2.5 * cycle, self._stale_floor)
-            ch = Channel(
-                name=name,
-                unit=info.unit if info else "",
-                source=source,
-                stale_after=stale_after,
-            )
-            self._channels[name] = ch
-        return ch
-
+    # -- bus time -------------------------------------------------------------------
     @property
     def now(self) -> float | None:
         """The runtime's bus time: the later of the last frame and the last tick."""
@@ -294,11 +275,7 @@ class Runtime:
     def frames_per_second(self, window_s: float = 1.0) -> float:
         """Frame rate over the last ``window_s`` seconds of bus time."""
         with self.lock:
-            if not self._frame_times:
-                return 0.0
-            end = self.now
-            count = sum(1 for t in reversed(self._frame_times) if t > end - window_s)
-            return count / window_s
+            return self.counters.frames_per_second(self.now, window_s)
 
     # -- frames and ticks -----------------------------------------------------------
     def ingest(self, msg: can.Message) -> None:
@@ -308,11 +285,13 @@ class Runtime:
     def ingest_many(self, msgs: Iterable[can.Message]) -> int:
         """Apply frames in order (the offline replay's fast path); returns how many."""
         n = 0
-        by_id = self.db._by_id
+        by_id = self.db.by_id
         pending = self._pending
         streams = self._streams
-        frame_times = self._frame_times
-        by_id_count = self.frames_by_id
+        counters = self.counters
+        frame_times = counters.frame_times
+        by_id_count = counters.frames_by_id
+        max_ids = counters.max_counted_ids
         with self.lock:
             try:
                 for msg in msgs:
@@ -324,7 +303,7 @@ class Runtime:
                     frame_times.append(ts)
                     key = (msg.arbitration_id, bool(msg.is_extended_id))
                     seen = by_id_count.get(key)
-                    if seen is None and len(by_id_count) >= MAX_COUNTED_IDS:
+                    if seen is None and len(by_id_count) >= max_ids:
                         by_id_count[OTHER_IDS] = by_id_count.get(OTHER_IDS, 0) + 1  # a bus of random IDs
                     else:
                         by_id_count[key] = (seen or 0) + 1
@@ -332,20 +311,17 @@ class Runtime:
                     if last is None or ts >= last:
                         self.last_frame_time = ts
                     else:
-                        self.late_frames += 1
+                        counters.late_frames += 1
                     if msg.is_error_frame or msg.is_remote_frame:
-                        self.decode_errors["error_frame" if msg.is_error_frame
-                                           else "remote_frame"] += 1
+                        counters.count_decode_error("error_frame" if msg.is_error_frame
+                                                    else "remote_frame")
                         continue
                     message = by_id.get(key)
                     if message is None or len(msg.data) != message.length:
                         try:
                             self.db.check(msg)  # the one place that words the error
                         except FrameDecodeError as exc:
-                            self.decode_errors[exc.kind] += 1
-                            if exc.kind == "unknown_id" and (
-                                    key in self.unknown_ids or len(self.unknown_ids) < MAX_UNKNOWN_IDS):
-                                self.unknown_ids[key] += 1
+                            counters.count_decode_error(exc.kind, key)
                         continue
                     if streams:
                         route = streams.get(key)
@@ -355,7 +331,7 @@ class Runtime:
                     if prev is None or ts >= prev[1]:
                         pending[key] = (message, ts, msg.data)
             finally:  # frames applied before a bad log line still count
-                self.frames += n
+                counters.frames += n
         return n
 
     def _flush(self) -> None:
@@ -364,24 +340,21 @@ class Runtime:
             return
         pending = list(self._pending.values())
         self._pending.clear()  # in place: ingest_many holds a reference to this dict
+        chans = self.store.by_name
         for message, ts, data in pending:
             try:
                 values = self.db.decode_payload(message, bytes(data))
             except FrameDecodeError as exc:
-                self.decode_errors[exc.kind] += 1
+                self.counters.count_decode_error(exc.kind)
                 continue
             for name, value in values.items():
                 if self.producer.get(name):
                     continue  # our own output seen on the bus (e.g. a second runtime's)
-                ch = self._channel(name)
+                ch = chans.get(name)
+                if ch is None:
+                    ch = self.store.add(name)
                 if ch.t is None or ts >= ch.t:
                     ch.update(value, ts)
-
-    @property
-    def channels(self) -> dict[str, Channel]:
-        """Every channel by name, with the frames received so far applied."""
-        self._flush()
-        return self._channels
 
     def advance(self, t: float) -> None:
         """Run every tick due at or before bus time ``t`` (end of a log, or a silent bus)."""
@@ -424,25 +397,26 @@ class Runtime:
     def _count_tick(self, seconds: float, ticking: frozenset[str]) -> None:
         """Count a tick that had work, and an overrun when the work took longer than the
         period of the fastest task with work in it (a FAS tick with no FAS block has none)."""
-        self.ticks += 1
-        if seconds > self.tick_seconds_max:
-            self.tick_seconds_max = seconds
+        self.counters.count_tick(seconds)
         rates = self.rates
         if seconds * max(rates.FAS, rates.MED, rates.SLO) <= 1.0:
             return  # shorter than every period (the common case): no overrun, nothing to scan
         working = [r for r in ticking if r == "MED" or any(r in b.rates for b in self.blocks.values())]
         if working and seconds > min(rates.period(r) for r in working):
-            self.tick_overruns += 1
+            self.counters.count_overrun()
 
     def _tick(self, ticking: frozenset[str], t: float) -> None:
         updated: set[str] = set()
+        chans = self.store.by_name
+        counters = self.counters
+        block_errors, withheld = counters.block_errors, counters.withheld
         for block in list(self.blocks.values()):
             if ticking.isdisjoint(block.rates):
                 continue
             values: dict[str, float] = {}
             bad: tuple[str, str] | None = None
             for name in block.inputs:
-                ch = self._channels.get(name)
+                ch = chans.get(name)
                 if ch is None:
                     bad = (STALE, f"input {name} has no value yet")
                     break
@@ -453,30 +427,26 @@ class Runtime:
                 values[name] = ch.value  # type: ignore[assignment]
             if bad is not None:
                 for out in block.outputs:
-                    self._channels[out].mark(*bad)
+                    chans[out].mark(*bad)
                 continue
             started = time.perf_counter()
             try:
                 outputs = block.step(t, values, ticking)
             except ArithmeticError as exc:
-                self.block_errors[block.name] += 1
+                block_errors[block.name] += 1
                 for out in block.outputs:
-                    self._channels[out].mark(INVALID, f"{type(exc).__name__}: {exc}")
+                    chans[out].mark(INVALID, f"{type(exc).__name__}: {exc}")
                 continue
             finally:
-                spent = self.step_time.get(block.name)
-                if spent is None:
-                    spent = self.step_time[block.name] = [0.0, 0]
-                spent[0] += time.perf_counter() - started
-                spent[1] += 1
+                counters.count_step(block.name, time.perf_counter() - started)
             reasons = block.errors
             for out, value in outputs.items():
-                ch = self._channels[out]
+                ch = chans[out]
                 ch.update(float(value), t)
                 if ch.status != OK:
-                    self.block_errors[block.name] += 1
+                    block_errors[block.name] += 1
                     if not math.isfinite(ch.value):
-                        self.withheld[out] += 1  # _emit keeps it off the bus
+                        withheld[out] += 1  # _emit keeps it off the bus
                     if out in reasons:
                         ch.mark(INVALID, reasons[out])
                 updated.add(out)
@@ -485,25 +455,27 @@ class Runtime:
 
     def _emit(self, updated: set[str], t: float) -> None:
         """Queue a DBC frame for each output message that carries an updated signal."""
+        chans = self.store.by_name
         for message in self.db.messages_carrying(set(self.producer)):
             names = [s.name for s in message.signals]
             if not updated.intersection(names):
                 continue
             if not all(self.blocks[self.producer[n]].on_bus for n in names):
                 continue  # e.g. a disabled controller: its demand stays off the bus
-            chans = [self._channels[n] for n in names]
-            if any(c.status != OK or c.value is None for c in chans):
+            picked = [chans[n] for n in names]
+            if any(c.status != OK or c.value is None for c in picked):
                 continue  # a stale or invalid output is not put on the bus
-            self.outbox.append(self.db.encode(message.name, {c.name: c.value for c in chans}, t))
+            self.outbox.append(self.db.encode(message.name, {c.name: c.value for c in picked}, t))
 
     def _after_med_tick(self, t: float) -> None:
-        rows = []
-        for ch in self._channels.values():
-            status, _ = ch.status_at(t)
-            rows.append((ch.name, ch.value if status == OK else None, status))
-        self._history.record(t, rows)
+        self.store.record(t)
         for listener in self.tick_listeners:
             listener(t)
+
+    def send(self, frames: Iterable[can.Message]) -> None:
+        """Queue frames for the bus; the live loop sends them with the next outputs."""
+        with self.lock:
+            self.outbox.extend(frames)
 
     def take_outbox(self) -> list[can.Message]:
         with self.lock:
@@ -511,45 +483,46 @@ class Runtime:
             return out
 
     # -- views ----------------------------------------------------------------------
+    @property
+    def channels(self) -> dict[str, Channel]:
+        """Every channel by name, with the frames received so far applied."""
+        self._flush()
+        return self.store.by_name
+
     def snapshot(self) -> list[dict[str, Any]]:
+        """Every channel as seen now, by name."""
         with self.lock:
             self._flush()
-            now = self.now
-            return [ch.snapshot(now) for ch in sorted(self._channels.values(), key=lambda c: c.name)]
+            return self.store.snapshot(self.now)
 
     def channel(self, name: str) -> Channel:
-        ch = self.channels.get(name)
-        if ch is None:
-            raise UnknownBlockError("channel", name, sorted(self._channels))
-        return ch
+        with self.lock:
+            self._flush()
+            return self.store.channel(name)
 
     def history(self, name: str, seconds: float) -> list[tuple[float, float | None, str]]:
         with self.lock:
-            self.channel(name)  # 404 for an unknown channel
-            return self._history.series(name, seconds)
+            self._flush()  # 404 for a channel no frame has brought yet
+            return self.store.history(name, seconds)
+
+    def readings(self, names: Iterable[str] | None = None,
+                 at: float | None = None) -> dict[str, Reading]:
+        """Value, status and bus time of every channel (or of those of ``names`` that exist)
+        as seen at bus time ``at`` (default: now)."""
+        with self.lock:
+            self._flush()
+            return self.store.readings(self.now if at is None else at, names)
 
     def unknown_id_counts(self, top: int = 32) -> dict[str, int]:
         """The most frequent frame IDs that no DBC defines, as ``"0x123"`` (``x`` suffix:
         extended) -> frames."""
         with self.lock:
-            return {f"0x{i:X}{'x' if ext else ''}": n
-                    for (i, ext), n in self.unknown_ids.most_common(top)}
+            return self.counters.unknown_id_counts(top)
 
     def health(self) -> dict[str, Any]:
         with self.lock:
-            return {
-                "frames": self.frames,
-                "frames_per_s": self.frames_per_second(),
-                "decode_errors": dict(self.decode_errors),
-                "late_frames": self.late_frames,
-                "unknown_ids": self.unknown_id_counts(),
-                "block_errors": dict(self.block_errors),
-                "streams": {r.layout.name: r.tracker.counts.as_dict() for r in self._streams.values()},
-                "withheld": dict(self.withheld),
-                "tick_overruns": self.tick_overruns,
-                "last_frame_time": self.last_frame_time,
-                "bus_time": self.now,
-            }
+            streams = {r.layout.name: r.tracker.counts.as_dict() for r in self._streams.values()}
+            return self.counters.report(self.now, self.last_frame_time, streams)
 
 
-__all__ = ["FRAME_ERROR_KINDS", "Rates", "Runtime"]
+__all__ = ["FRAME_ERROR_KINDS", "MAX_COUNTED_IDS", "MAX_UNKNOWN_IDS", "OTHER_IDS", "Rates", "Runtime"]

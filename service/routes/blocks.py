@@ -18,21 +18,17 @@ def block_router(fam: BlockFamily) -> APIRouter:
     @router.get("", response_model=list[BlockOut], name=f"list {family}s",
                 description=f"Every {family} of the cell ({fam.description}).")
     def list_blocks(cell: CellDep) -> list[BlockOut]:
-        rt = cell.runtime
-        with rt.lock:
-            return [BlockOut(**rt.block(n).describe()) for n in cell.names(family)]
+        return [BlockOut(**b) for b in cell.blocks(family)]
 
     @router.get("/{name}", response_model=BlockOut, name=f"get {family}")
     def get_block(name: str, cell: CellDep) -> BlockOut:
-        with cell.runtime.lock:
-            return BlockOut(**cell.find(family, name).describe())
+        return BlockOut(**cell.block(family, name))
 
     @router.patch("/{name}", response_model=BlockOut, name=f"tune {family}")
     def patch_block(name: str, cell: CellDep,
                     changes: dict[str, Any] = Body(..., examples=list(fam.examples))) -> BlockOut:
         """Change parameters; validated as a whole, effective at the next tick, saved."""
         cell.tune(family, name, changes)
-        with cell.runtime.lock:
-            return BlockOut(**cell.find(family, name).describe())
+        return BlockOut(**cell.block(family, name))
 
     return router

@@ -20,14 +20,12 @@ def _out(snap: dict[str, Any]) -> ChannelOut:
 @router.get("", response_model=list[ChannelOut])
 def list_channels(cell: CellDep) -> list[ChannelOut]:
     """Every channel: bus signals and block outputs, with value, unit, bus time and status."""
-    return [_out(s) for s in cell.runtime.snapshot()]
+    return [_out(s) for s in cell.snapshot()]
 
 
 @router.get("/{name}", response_model=ChannelOut)
 def get_channel(name: str, cell: CellDep) -> ChannelOut:
-    rt = cell.runtime
-    with rt.lock:
-        return _out(rt.channel(name).snapshot(rt.now))
+    return _out(cell.channel(name))
 
 
 @router.get("/{name}/history", response_model=HistoryOut)
@@ -38,11 +36,10 @@ def channel_history(
                                     description="how far back, in seconds of bus time")] = 60.0,
 ) -> HistoryOut:
     """The channel's values at each MED tick over the last ``seconds`` (bounded ring buffer)."""
-    rt = cell.runtime
-    points = rt.history(name, seconds)
+    points = cell.history(name, seconds)
     return HistoryOut(
         name=name,
-        unit=rt.channel(name).unit,
+        unit=cell.channel(name)["unit"],
         seconds=seconds,
         points=[HistoryPoint(time=t, value=_clean(v), status=s) for t, v, s in points],
     )

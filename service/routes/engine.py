@@ -4,8 +4,6 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from cell.runtime.supervision import reset_trip, trip
-
 from ..deps import CellDep
 
 router = APIRouter(prefix="/engine", tags=["engine"])
@@ -16,5 +14,5 @@ def reset_engine(cell: CellDep) -> dict[str, Any]:
     """Reset a trip of the engine protection: sends ``ENGINE_RESET`` with a new counter
     value (the simulator re-arms the protection and restarts the engine). ``/health`` shows
     the trip until the engine reports it is running again."""
-    value = reset_trip(cell.runtime)
-    return {"sent": {"ENGINE_RESET": value}, "trip": trip(cell.runtime)}
+    value = cell.reset_trip()
+    return {"sent": {"ENGINE_RESET": value}, "trip": cell.trip()}

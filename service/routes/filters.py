@@ -36,15 +36,13 @@ def autotune_filter(name: str, cell: CellDep, body: AutotuneIn | None = None) ->
     only with ``"apply": true``, and never when the tuner flags its own estimate (at the edge
     of the search range, too little data, ...): then 409, naming why, and nothing changes."""
     body = body or AutotuneIn()
-    rt = cell.runtime
-    with rt.lock:
-        block = cell.find("filter", name)
-        if block.kind != "kalman":
-            raise HTTPException(422, detail=[{"loc": ["path", "name"], "type": "value_error",
-                                              "msg": f"{name} is a {block.kind} filter; only "
-                                                     "Kalman filters have Q and R"}])
-        y = [v for _, v, _ in rt.history(block.inputs[0], body.minutes * 60.0)]
-        rate = rt.rates.period(block.rate) ** -1
+    block = cell.block("filter", name)
+    if block["kind"] != "kalman":
+        raise HTTPException(422, detail=[{"loc": ["path", "name"], "type": "value_error",
+                                          "msg": f"{name} is a {block['kind']} filter; only "
+                                                 "Kalman filters have Q and R"}])
+    y = [v for _, v, _ in cell.history(block["inputs"][0], body.minutes * 60.0)]
+    rate = cell.period(block["rate"]) ** -1
     try:
         result = autotune(y, rate, body.method)
     except ConfigError as exc:

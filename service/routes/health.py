@@ -1,7 +1,5 @@
 from fastapi import APIRouter
 
-from cell.runtime.supervision import assess
-
 from ..deps import CellDep
 from ..schemas import HealthOut
 
@@ -14,10 +12,4 @@ def health(cell: CellDep) -> HealthOut:
     engine tripped), frame rate, bad frames by kind, unknown frame IDs, block errors, outputs
     withheld for not being finite, the time of the last frame, and the sample streams' order
     and loss counts."""
-    h = cell.runtime.health()
-    return HealthOut(
-        **assess(cell.runtime, cell.live),
-        bus=cell.bus,
-        runtime_running=cell.live.running if cell.live else False,
-        **h,
-    )
+    return HealthOut(**cell.health())

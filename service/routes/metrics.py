@@ -13,5 +13,5 @@ def get_metrics(request: Request) -> PlainTextResponse:
     """Frames/s and frames by ID, decode errors by kind, tick overruns, per-block step time
     and stream clients, in the Prometheus text exposition format."""
     app = request.app
-    text = metrics.render(app.state.cell.runtime, app.state.frame_rates, app.state.hub)
+    text = metrics.render(app.state.cell, app.state.frame_rates, app.state.hub)
     return PlainTextResponse(text, media_type=metrics.CONTENT_TYPE)

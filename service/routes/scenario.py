@@ -4,8 +4,6 @@ from typing import Any
 
 from fastapi import APIRouter, Body
 
-from cell.bus.scenario import describe_frames, scenario_frames, scenario_keys
-
 from ..deps import CellDep
 
 router = APIRouter(prefix="/scenario", tags=["scenario"])
@@ -15,7 +13,7 @@ router = APIRouter(prefix="/scenario", tags=["scenario"])
             description="Every scenario key of the DBC files: the signal it sets, its range, "
                         "unit and start value.")
 def list_keys(cell: CellDep) -> list[dict[str, Any]]:
-    return [k.describe() for k in scenario_keys(cell.runtime.db).values()]
+    return cell.scenario_keys()
 
 
 @router.post("", name="send a scenario command",
@@ -25,12 +23,4 @@ def list_keys(cell: CellDep) -> list[dict[str, Any]]:
                          "or a value outside its DBC range; nothing is sent then.")
 def send(cell: CellDep, values: dict[str, Any] = Body(..., examples=[{"osc": 0.5}])
          ) -> dict[str, Any]:
-    rt = cell.runtime
-    with rt.lock:
-        now = rt.now
-        if cell.live is not None:
-            est = cell.live.estimated_bus_time()
-            now = est if est is not None else now
-        frames = scenario_frames(rt.db, values, now or 0.0)
-        rt.outbox.extend(frames)
-    return {"sent": describe_frames(rt.db, frames), "bus": cell.bus}
+    return {"sent": cell.send_scenario(values), "bus": cell.bus}

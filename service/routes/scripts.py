@@ -6,8 +6,10 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Request, Response
 from fastapi.responses import JSONResponse
 
+from cell.app.cell import Cell
 from cell.core.errors import ConfigError, ParamError
 from cell.scripts import ScriptError
+from cell.scripts.manager import ScriptManager
 
 from ..deps import CellDep
 
@@ -15,8 +17,8 @@ router = APIRouter(prefix="/scripts", tags=["scripts"])
 NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,99}\.(fdv|labels|ravg)$")
 
 
-def _manager(cell):
-    mgr = cell.extra.get("scripts")
+def _manager(cell: Cell) -> ScriptManager:
+    mgr = cell.scripts
     if mgr is None:
         raise HTTPException(404, detail="this cell runs no scripts")
     return mgr

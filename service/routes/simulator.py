@@ -17,7 +17,7 @@ router = APIRouter(tags=["simulator"])
 def simulator(cell: CellDep) -> dict[str, Any]:
     """The simulator settings the cell was started with (``running``: false with ``--no-sim``
     or when the cell was not started by ``testcell up``)."""
-    s = cell.extra.get("settings")
+    s = cell.settings
     if s is None:
         return {"running": False, "engine": None, "duty": None, "speed": None, "seed": None,
                 "bus": cell.bus, "changeable": []}

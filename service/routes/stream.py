@@ -53,18 +53,16 @@ def _hub(app: Any) -> StreamHub:
 
 
 def _subscribed(hub: StreamHub, client: Client) -> dict[str, Any]:
-    with hub.runtime.lock:
-        names = client.names(hub.runtime.channels)
-        unmatched = [p for p in client.patterns if not match((p,), names)]
-        chans = hub.describe(names)
+    names = client.names(hub.cell.channel_names())
+    unmatched = [p for p in client.patterns if not match((p,), names)]
+    chans = hub.describe(names)
     return {"type": "subscribed", "patterns": list(client.patterns), "channels": chans,
             "unmatched": unmatched}
 
 
 def _snapshot(hub: StreamHub, client: Client) -> dict[str, Any]:
-    with hub.runtime.lock:
-        names = client.names(hub.runtime.channels)
-        return {"type": "snapshot", "time": hub.runtime.now, "values": hub.current(names)}
+    now, values = hub.current(client.names(hub.cell.channel_names()))
+    return {"type": "snapshot", "time": now, "values": values}
 
 
 @router.websocket("/stream")
@@ -79,7 +77,7 @@ async def stream(ws: WebSocket) -> None:
         return
     try:
         query = ws.query_params.get("channels")
-        await ws.send_json({"type": "hello", "time": hub.runtime.now, "backlog": client.backlog})
+        await ws.send_json({"type": "hello", "time": hub.cell.now, "backlog": client.backlog})
         if query is not None:
             try:
                 client.patterns = parse_patterns(query, "channels")

@@ -7,7 +7,7 @@ const TC = window.TC = {
   ready: false, messages: 0, dropped: 0, lastSeq: 0,
   store: new Store(Math.ceil(HISTORY_S * 10 * 1.1) + 16),
   view: {window: 60, paused: false, pausedAt: 0, zoom: null},
-  plots: [], latest: new Map(), meta: new Map(), blocks: {}, paths: {},
+  plots: [], latest: new Map(), meta: new Map(), families: [], blocks: {}, paths: {},
   perf: {draws: 0, totalMs: 0, maxMs: 0},
 };
 
@@ -42,10 +42,16 @@ async function discover() {
   TC.paths = spec.paths || {};
   const chans = (await api("GET", "/channels")).data;
   chans.forEach(c => TC.meta.set(c.name, c));
-  for (const section of ["filters", "controllers", "observers"]) {
-    TC.blocks[section] = TC.paths["/" + section] ? (await api("GET", "/" + section)).data : [];
+  // the block families the cell knows (GET /families): each with blocks has /{section}
+  const fams = await api("GET", "/families");
+  TC.families = fams.ok ? fams.data : [];
+  for (const f of TC.families) {
+    TC.blocks[f.section] = f.blocks.length && TC.paths["/" + f.section] ? (await api("GET", "/" + f.section)).data : [];
   }
 }
+
+// the blocks of a family by its name ("filter", "controller", ...), as GET /{section} gave them
+const blocksOf = name => { const f = TC.families.find(x => x.name === name); return f ? TC.blocks[f.section] : []; };
 
 const unitOf = name => (TC.meta.get(name) || {}).unit || "";
 const exists = name => TC.meta.has(name);
@@ -92,9 +98,20 @@ function addPlot(id, title, traces, hlines) {
 }
 
 function buildPanels() {
+  // one kind of panel per family: filters and controllers have their own; the blocks of any
+  // other family (observers, a plugin's) are plotted as models of what they estimate
+  for (const fam of TC.families) {
+    const blocks = TC.blocks[fam.section] || [];
+    if (fam.name === "filter") filterPanels(blocks);
+    else if (fam.name === "controller") controllerPanels(blocks);
+    else modelPanels(fam.name, blocks);
+  }
+}
+
+function filterPanels(blocks) {
   // raw against moving average against Kalman against truth, per filtered input (each bank)
   const byInput = new Map();
-  for (const f of TC.blocks.filters) {
+  for (const f of blocks) {
     if (f.inputs.length !== 1) continue;
     if (!byInput.has(f.inputs[0])) byInput.set(f.inputs[0], []);
     byInput.get(f.inputs[0]).push(f.name);
@@ -110,17 +127,23 @@ function buildPanels() {
       ...scripts.map(n => ({name: n, unit: u, hidden: true})),
     ]);
   }
+}
+
+function controllerPanels(controllers) {
   // each controller: feedback and valve position (its inputs), demand (its outputs), setpoint
-  for (const c of TC.blocks.controllers) {
+  for (const c of controllers) {
     const fb = c.params.feedback || c.inputs[0];
     const traces = [...new Set([fb, ...c.inputs, ...c.outputs])].map(n => ({name: n, unit: unitOf(n)}));
     const hl = c.params.setpoint === undefined ? [] : [{label: "setpoint", unit: unitOf(fb),
-      value: () => { const b = TC.blocks.controllers.find(x => x.name === c.name); return b ? b.params.setpoint : NaN; }}];
+      value: () => { const b = blocksOf("controller").find(x => x.name === c.name); return b ? b.params.setpoint : NaN; }}];
     addPlot(`controller-${c.name}`, `controller ${c.name} (${c.kind})`, traces, hl);
   }
-  // each observer: its outputs grouped by unit, with their truth and same-unit inputs;
-  // a bar panel for each family of numbered outputs
-  for (const o of TC.blocks.observers) {
+}
+
+function modelPanels(family, blocks) {
+  // each observer (or other model): its outputs grouped by unit, with their truth and
+  // same-unit inputs; a bar panel for each family of numbered outputs
+  for (const o of blocks) {
     const prefix = commonPrefix(o.outputs);
     const units = new Map();
     for (const n of o.outputs) {
@@ -136,10 +159,10 @@ function buildPanels() {
         if (t && unitOf(t) === u) traces.push({name: t, unit: u, width: 1.8});
       }
       for (const i of o.inputs) if (unitOf(i) === u) traces.push({name: i, unit: u, width: 0.8});
-      addPlot(`observer-${o.name}-${u || "none"}`, `observer ${o.name}${u ? " [" + u + "]" : ""}`, traces);
+      addPlot(`${family}-${o.name}-${u || "none"}`, `${family} ${o.name}${u ? " [" + u + "]" : ""}`, traces);
     }
     for (const fam of families(o.outputs)) {
-      const bp = new BarPlot($("plots"), {id: `bars-${fam.key}`, title: `${fam.key} (observer ${o.name})`,
+      const bp = new BarPlot($("plots"), {id: `bars-${fam.key}`, title: `${fam.key} (${family} ${o.name})`,
         members: fam.members, unit: unitOf(fam.members[0].name), store: TC.store});
       TC.plots.push(bp);
     }
@@ -262,7 +285,7 @@ async function refreshChannels() {
   if (r.ok) r.data.forEach(c => TC.meta.set(c.name, c));
 }
 
-// -- tuning: every filter, observer and controller ---------------------------------------------
+// -- tuning: every block of every family the cell has -------------------------------------------
 function shown(v) { return typeof v === "string" ? v : JSON.stringify(v); }
 
 function parseInput(text) {
@@ -321,8 +344,8 @@ function buildTuning() {
   const names = document.createElement("datalist"); names.id = "channel-names";
   for (const n of [...TC.meta.keys()].sort()) names.appendChild(new Option(n));
   root.appendChild(names);
-  for (const section of ["filters", "observers", "controllers"]) {
-    if (!TC.blocks[section].length) continue;
+  for (const {section} of TC.families) {
+    if (!(TC.blocks[section] || []).length) continue;
     const h = document.createElement("h3"); h.textContent = section; root.appendChild(h);
     TC.blocks[section].forEach(b => root.appendChild(tuningCard(section, b)));
   }

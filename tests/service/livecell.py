@@ -43,8 +43,8 @@ def live_cell(tmp_path, routers=(), **options):
     thread = threading.Thread(target=sim.run, name="test-sim", daemon=True,
                               kwargs=dict(bus=sim_bus, settings=settings, stop_event=stop, db=runtime.db))
     live = LiveCell(runtime, bus)
-    cell = Cell(runtime=runtime, bus=str(spec), tuning=store, live=live,
-                extra={"scripts": scripts, "settings": settings})
+    cell = Cell(runtime=runtime, bus=str(spec), settings=settings, scripts=scripts,
+                tuning=store, live=live)
     app = create_app(cell)
     for router in routers:
         app.include_router(router)

@@ -36,7 +36,7 @@ def make(db, tmp_path):
     rt = Runtime(db, native_filters())
     store = TuningStore(tmp_path / "tuning.json")
     mgr = ScriptManager(rt, store)
-    return rt, mgr, TestClient(create_app(Cell(runtime=rt, tuning=store, extra={"scripts": mgr})))
+    return rt, mgr, TestClient(create_app(Cell(runtime=rt, tuning=store, scripts=mgr)))
 
 
 def test_script_reading_an_unknown_input_is_accepted_with_the_input_named(db, tmp_path):
@@ -84,7 +84,7 @@ def test_trip_is_shown_and_reset_over_http_and_by_scenario_frame(db, tmp_path):
                               environ={}).for_simulator()
     sim = build_sim(settings, db)
     rt = Runtime(db, native_filters())
-    c = TestClient(create_app(Cell(runtime=rt, extra={})))
+    c = TestClient(create_app(Cell(runtime=rt)))
 
     def run(seconds):
         for _ in range(round(seconds / sim.dt)):

@@ -124,7 +124,7 @@ def test_websocket_clients_are_counted_while_connected(db):
 
 
 def test_a_bus_of_random_ids_keeps_the_counts_bounded(db, monkeypatch):
-    import cell.runtime.scheduler as runtime
+    import cell.runtime.health as runtime
 
     monkeypatch.setattr(runtime, "MAX_COUNTED_IDS", 8)
     rt = Runtime(db)

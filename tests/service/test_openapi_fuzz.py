@@ -37,7 +37,7 @@ def _app():
         t = round(t + 0.01, 6)
     rt.advance(30.0)
     return create_app(Cell(runtime=rt, bus="virtual:schemathesis", tuning=store,
-                           extra={"scripts": scripts}))
+                           scripts=scripts))
 
 
 schema = schemathesis.openapi.from_asgi("/openapi.json", _app())

@@ -36,7 +36,7 @@ def make(db, tmp_path):
     mgr = ScriptManager(rt, store)
     assert mgr.load_defaults() == []
     store.restore(rt)
-    return rt, mgr, store, TestClient(create_app(Cell(runtime=rt, tuning=store, extra={"scripts": mgr})))
+    return rt, mgr, store, TestClient(create_app(Cell(runtime=rt, tuning=store, scripts=mgr)))
 
 
 def feed(rt, db, t0, t1, value=lambda t: 680.0 + 30 * math.sin(t)):

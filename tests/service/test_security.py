@@ -40,7 +40,7 @@ def make(db, tmp_path, **security):
     mgr = ScriptManager(rt, store)
     mgr.load_defaults()
     feed(rt, db, 0.0, 5.0)
-    cell = Cell(runtime=rt, tuning=store, extra={"scripts": mgr})
+    cell = Cell(runtime=rt, tuning=store, scripts=mgr)
     return rt, store, mgr, TestClient(create_app(cell, Security(**security)))
 
 

@@ -57,8 +57,12 @@ def cell(db):
 
 
 @pytest.fixture
-def url(cell):
-    app = cell.extra["app"] = create_app(cell)
+def app(cell):
+    return create_app(cell)
+
+
+@pytest.fixture
+def url(app):
     with served(app) as base:
         yield base
 
@@ -173,7 +177,7 @@ def test_sse_serves_the_same_data_to_curl(url, cell, db):
     assert all(b["time"] - a["time"] == pytest.approx(0.1) for a, b in zip(data, data[1:]))
 
 
-def test_streams_end_when_the_server_is_asked_to_stop(url, cell, db):
+def test_streams_end_when_the_server_is_asked_to_stop(url, app):
     """An event stream never ends by itself: on SIGTERM the server ends them (service.serve)."""
     lines: list[str] = []
     done = threading.Event()
@@ -191,7 +195,7 @@ def test_streams_end_when_the_server_is_asked_to_stop(url, cell, db):
         while not any(line.startswith("event: snapshot") for line in lines):
             assert time.monotonic() < deadline
             time.sleep(0.02)
-        cell.extra["app"].state.hub.close()  # what Server.handle_exit does first
+        app.state.hub.close()  # what Server.handle_exit does first
         assert done.wait(5), "the event stream did not end"
         with pytest.raises(ConnectionClosed) as closed:
             while True:

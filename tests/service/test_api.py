@@ -1,7 +1,6 @@
 """The HTTP API over an in-process runtime fed with frames (no bus, no wall clock)."""
 
 import json
-import math
 
 import pytest
 from fastapi.testclient import TestClient
@@ -11,14 +10,12 @@ from cell.estimators.backpressure import native_filters
 from cell.runtime.scheduler import Runtime
 from cell.app.tuning import TuningStore
 from service.main import create_app
+from tests.helpers.frames import feed as bp_feed
+from tests.helpers.frames import steady, wavy
 
 
 def feed(rt, db, t0, t1, value=680.0):
-    t = t0
-    while t < t1 - 1e-9:
-        rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": value, "EXH_BP_R": value + 10 * math.sin(t)}, t))
-        t = round(t + 0.01, 6)
-    rt.advance(t1 - 0.01)
+    bp_feed(rt, db, t0, t1, left=steady(value), right=wavy(value))
 
 
 @pytest.fixture

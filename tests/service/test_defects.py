@@ -7,7 +7,6 @@
   frame of the same ENGINE_RESET signal) resets it, in a simulator fed through the bus frames.
 """
 
-import math
 
 import can
 from fastapi.testclient import TestClient
@@ -22,14 +21,12 @@ from cell.core.settings import Settings
 from cell.sim import build as build_sim
 from cell.app.tuning import TuningStore
 from service.main import create_app
+from tests.helpers.frames import feed as bp_feed
+from tests.helpers.frames import steady, wavy
 
 
 def feed(rt, db, t0, t1):
-    t = t0
-    while t < t1 - 1e-9:
-        rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 600.0, "EXH_BP_R": 600.0 + 10 * math.sin(t)}, t))
-        t = round(t + 0.01, 6)
-    rt.advance(t1 - 0.01)
+    bp_feed(rt, db, t0, t1, left=steady(600.0), right=wavy(600.0))
 
 
 def make(db, tmp_path):

@@ -12,6 +12,7 @@ from cell.runtime.scheduler import Runtime
 from cell.scripts.manager import ScriptManager
 from cell.app.tuning import TuningStore
 from service.main import create_app
+from tests.helpers.frames import feed as bp_feed
 
 COUNTER = """
 [init]
@@ -40,12 +41,7 @@ def make(db, tmp_path):
 
 
 def feed(rt, db, t0, t1, value=lambda t: 680.0 + 30 * math.sin(t)):
-    t = t0
-    while t < t1 - 1e-9:
-        v = value(t)
-        rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": v, "EXH_BP_R": v}, t))
-        t = round(t + 0.01, 6)
-    rt.advance(round(t1 - 0.01, 6))
+    bp_feed(rt, db, t0, t1, left=value)
 
 
 def test_shipped_scripts_run_beside_native_filters(db, tmp_path):

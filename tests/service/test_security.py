@@ -3,7 +3,6 @@ constant time; 401 changes nothing; bodies and scripts over their limits get 413
 
 import hmac
 import json
-import math
 
 import pytest
 from fastapi import FastAPI, WebSocket
@@ -20,6 +19,8 @@ from cell.app.tuning import TuningStore
 from service import security as sec_mod
 from service.main import create_app
 from service.security import Security, check_bind, websocket_may_command
+from tests.helpers.frames import feed as bp_feed
+from tests.helpers.frames import steady, wavy
 
 TOKEN = "s3cret-token-for-tests"
 GOOD = {"Authorization": f"Bearer {TOKEN}"}
@@ -27,11 +28,7 @@ BAD = {"Authorization": "Bearer s3cret-token-for-tesTs"}
 
 
 def feed(rt, db, t0, t1):
-    t = t0
-    while t < t1 - 1e-9:
-        rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 600.0, "EXH_BP_R": 600.0 + 10 * math.sin(t)}, t))
-        t = round(t + 0.01, 6)
-    rt.advance(t1 - 0.01)
+    bp_feed(rt, db, t0, t1, left=steady(600.0), right=wavy(600.0))
 
 
 def make(db, tmp_path, **security):

@@ -27,6 +27,8 @@ from service.main import create_app
 from service.stream import BACKLOG, RING
 
 from .served import served
+from tests.helpers.frames import feed as bp_feed
+from tests.helpers.frames import steady, wavy
 
 
 def frame(db, t):
@@ -34,10 +36,7 @@ def frame(db, t):
 
 
 def feed(rt, db, t0, t1):
-    t = t0
-    while t < t1 - 1e-9:
-        rt.ingest(frame(db, t))
-        t = round(t + 0.01, 6)
+    bp_feed(rt, db, t0, t1, left=steady(680.0), right=wavy(680.0), advance=False)
 
 
 def recv(ws, kind, timeout=5.0):

@@ -26,7 +26,7 @@ from cell.plant.si_engine import steady_cycle
 from cell.plant.si_turbo import si_turbo
 from cell.runtime.scheduler import Runtime
 from cell.sim.simulator import Simulator
-from cell.runtime.samples import find_streams
+from cell.runtime.samples import find_sample_streams
 
 RPM = 6000.0
 BUDGET_SPS = RPM / 60.0 * 360.0 / 6.0  # samples per second of one stream
@@ -36,7 +36,7 @@ def main(seconds: float = 10.0) -> None:
     db = load()
     sim = Simulator(si_turbo(steady_cycle(RPM, 0.5, seconds), 0), db)
     frames = list(Lockstep(sim).frames(round(seconds / sim.dt)))
-    layouts = {db.message(la.message).frame_id: la for la in find_streams(db.messages).values()}
+    layouts = {db.message(la.message).frame_id: la for la in find_sample_streams(db.messages).values()}
     decoded: dict[str, list] = {"AFR_UEGO": [], "N_CRANK": []}
     for f in frames:
         la = layouts.get(f.arbitration_id)

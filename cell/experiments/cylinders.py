@@ -43,7 +43,7 @@ from cell.core.registry import Experiment
 from cell.runtime.scheduler import Runtime
 from cell.bus.scenario import scenario_frames
 from cell.sim.simulator import Simulator
-from cell.runtime.samples import find_streams
+from cell.runtime.samples import find_sample_streams
 
 
 @dataclass(frozen=True)
@@ -207,7 +207,7 @@ def run_case(case: Case, db: CellDatabase | None = None,
     sim = Simulator(comp, db)
     uego, rod = UegoInversion(record=True), RodInversion(record=True)
     rt = Runtime(db, [uego, rod])
-    layouts = {db.message(la.message).frame_id: la for la in find_streams(db.messages).values()}
+    layouts = {db.message(la.message).frame_id: la for la in find_sample_streams(db.messages).values()}
     truth: dict[str, dict[tuple[int, int], float]] = {"AFR_MANIFOLD_TRUE": {}, "N_CYL_TRUE": {}}
     rows: list[list[float]] = []
     afr_true: list[list[float]] = []

@@ -14,9 +14,9 @@ logger decodes the frames with plain cantools):
 - signals ``<STREAM>_0`` ... ``<STREAM>_{n-1}``: the ``n`` consecutive samples, sample ``k``
   at ``ANGLE + k * step``.
 
-:class:`StreamLayout` reads that layout from a message and packs or unpacks frame values;
+:class:`SampleLayout` reads that layout from a message and packs or unpacks frame values;
 the simulator packs through it, the runtime unpacks through it (encoding and decoding stay
-in :mod:`cell.bus.dbc`). :class:`StreamTracker` puts a stream's frames back in angle order: a
+in :mod:`cell.bus.dbc`). :class:`SampleTracker` puts a stream's frames back in angle order: a
 frame that arrives early waits (up to ``window`` frames) for the ones before it; a gap that
 does not fill is reported as lost samples; a frame that arrives after its place has passed
 is dropped. Everything is counted, for ``/health``.
@@ -36,7 +36,7 @@ ANGLE_SUFFIX = "_ANGLE"
 
 
 @dataclass(frozen=True)
-class StreamLayout:
+class SampleLayout:
     """The layout of one sample-stream message (see the module docstring).
 
     Attributes
@@ -70,7 +70,7 @@ class StreamLayout:
         return int(round(self.period_deg / self.step_deg))
 
     @classmethod
-    def from_message(cls, message: Message) -> StreamLayout | None:
+    def from_message(cls, message: Message) -> SampleLayout | None:
         """The stream layout of ``message``, or ``None`` when it is not a sample stream."""
         angle = [s for s in message.signals if s.name.endswith(ANGLE_SUFFIX)]
         if len(angle) != 1 or (angle[0].unit or "").lower() != "deg":
@@ -99,19 +99,19 @@ class StreamLayout:
         return index, np.fromiter((values[s] for s in self.sample_signals), float, self.n)
 
 
-def find_streams(messages: list[Message]) -> dict[str, StreamLayout]:
+def find_sample_streams(messages: list[Message]) -> dict[str, SampleLayout]:
     """Every sample-stream layout among ``messages``, by stream name."""
     out = {}
     for m in messages:
-        layout = StreamLayout.from_message(m)
+        layout = SampleLayout.from_message(m)
         if layout is not None:
             out[layout.name] = layout
     return out
 
 
 @dataclass
-class StreamCounts:
-    """What a :class:`StreamTracker` saw, as shown in ``/health``."""
+class SampleCounts:
+    """What a :class:`SampleTracker` saw, as shown in ``/health``."""
 
     frames: int = 0
     samples: int = 0
@@ -130,7 +130,7 @@ class StreamCounts:
 
 
 @dataclass
-class StreamTracker:
+class SampleTracker:
     """Puts one stream's frames in angle order and finds the missing ones.
 
     Parameters
@@ -150,9 +150,9 @@ class StreamTracker:
     cannot be seen from the angle alone.
     """
 
-    layout: StreamLayout
+    layout: SampleLayout
     window: int = 2
-    counts: StreamCounts = field(default_factory=StreamCounts)
+    counts: SampleCounts = field(default_factory=SampleCounts)
     _next: int | None = None
     _held: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)
     _run: list[tuple[int, np.ndarray, float]] = field(default_factory=list)
@@ -213,4 +213,4 @@ class StreamTracker:
             self._next = (self._next + len(vals)) % period
 
 
-__all__ = ["StreamCounts", "StreamLayout", "StreamTracker", "find_streams"]
+__all__ = ["SampleCounts", "SampleLayout", "SampleTracker", "find_sample_streams"]

@@ -30,7 +30,7 @@ from cell.bus.dbc import CellDatabase, FrameDecodeError
 from cell.core.errors import ConfigError, UnknownBlockError
 from cell.runtime.health import (FRAME_ERROR_KINDS, MAX_COUNTED_IDS, MAX_UNKNOWN_IDS, OTHER_IDS,
                                  HealthCounters)
-from cell.runtime.samples import StreamLayout, StreamTracker, find_streams
+from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_streams
 from cell.runtime.store import ChannelStore, Reading
 
 _EPS = 1e-9
@@ -72,14 +72,14 @@ class Rates:
         return 1.0 / getattr(self, name)
 
 
-class _StreamRoute:
+class _SampleRoute:
     """One sample stream in the runtime: its layout, its order tracker and its consumers."""
 
     __slots__ = ("layout", "tracker", "blocks")
 
-    def __init__(self, layout: StreamLayout, window: int) -> None:
+    def __init__(self, layout: SampleLayout, window: int) -> None:
         self.layout = layout
-        self.tracker = StreamTracker(layout, window=window)
+        self.tracker = SampleTracker(layout, window=window)
         self.blocks: list[Block] = []
 
 
@@ -164,9 +164,9 @@ class Runtime:
         self._next_index: dict[str, int] | None = None
         self._next_due: float | None = None
         #: frame key -> the sample stream it carries, for streams some block consumes
-        self._streams: dict[tuple[int, bool], _StreamRoute] = {}
+        self._streams: dict[tuple[int, bool], _SampleRoute] = {}
         self._stream_window = stream_window
-        self._layouts: dict[str, StreamLayout] | None = None
+        self._layouts: dict[str, SampleLayout] | None = None
         for block in blocks:
             self.add_block(block)
 
@@ -215,25 +215,25 @@ class Runtime:
                 self.counters.forget_output(out)
             return block
 
-    def _stream_layout(self, stream: str, block: str) -> StreamLayout:
+    def _stream_layout(self, stream: str, block: str) -> SampleLayout:
         """The layout of a sample stream the DBC defines; refuse one it does not."""
         if self._layouts is None:
-            self._layouts = find_streams(self.db.messages)
+            self._layouts = find_sample_streams(self.db.messages)
         layout = self._layouts.get(stream)
         if layout is None:
             raise ConfigError(f"{block} consumes sample stream {stream!r}, which no DBC message "
                               f"carries; streams: {', '.join(sorted(self._layouts)) or 'none'}")
         return layout
 
-    def _stream_route(self, layout: StreamLayout) -> _StreamRoute:
+    def _stream_route(self, layout: SampleLayout) -> _SampleRoute:
         m = self.db.message(layout.message)
         key = (m.frame_id, bool(m.is_extended_frame))
         route = self._streams.get(key)
         if route is None:
-            route = self._streams[key] = _StreamRoute(layout, self._stream_window)
+            route = self._streams[key] = _SampleRoute(layout, self._stream_window)
         return route
 
-    def _ingest_stream(self, route: _StreamRoute, message: Any, data: bytes, ts: float) -> None:
+    def _ingest_stream(self, route: _SampleRoute, message: Any, data: bytes, ts: float) -> None:
         """Hand a stream frame's samples, in angle order, to the blocks that consume it."""
         try:
             values = self.db.decode_payload(message, bytes(data))

@@ -18,7 +18,7 @@ from cantools.database.can import Message
 from cell.bus.dbc import CellDatabase, FrameDecodeError
 from cell.core.errors import ConfigError
 from cell.plant.composition import Composition
-from cell.runtime.samples import StreamLayout, find_streams
+from cell.runtime.samples import SampleLayout, find_sample_streams
 
 log = logging.getLogger(__name__)
 
@@ -69,8 +69,8 @@ class Simulator:
             period = max(1, round(m.cycle_time / 1000.0 / plant.dt))
             self.schedule.append((m, period, names))
         #: sample streams the plants produce: (plant, layout, samples not yet in a frame)
-        self.streams: list[tuple[object, StreamLayout, list]] = []
-        layouts = find_streams([m for m in db.messages if NODE in (m.senders or [])])
+        self.streams: list[tuple[object, SampleLayout, list]] = []
+        layouts = find_sample_streams([m for m in db.messages if NODE in (m.senders or [])])
         for p in plant.plants:
             for name in p.streams:
                 layout = layouts.get(name)

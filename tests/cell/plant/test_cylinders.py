@@ -20,7 +20,7 @@ from cell.bus.scenario import scenario_frames
 from cell.core.settings import Settings
 from cell.sim import build
 from cell.sim.simulator import Simulator
-from cell.runtime.samples import find_streams
+from cell.runtime.samples import find_sample_streams
 
 RPM = 1500.0
 TORQUE = 120.0
@@ -53,7 +53,7 @@ def _run(db, offsets=(0.25, 0, 0, 0), seconds=2.0):
     comp = Composition("t", [SteadyEngine(), Cylinders(imbalance=offsets)])
     sim = Simulator(comp, db)
     frames = list(Lockstep(sim).frames(round(seconds / sim.dt)))
-    layouts = {db.message(la.message).frame_id: la for la in find_streams(db.messages).values()}
+    layouts = {db.message(la.message).frame_id: la for la in find_sample_streams(db.messages).values()}
     streams: dict[str, list] = {}
     for f in frames:
         la = layouts.get(f.arbitration_id)
@@ -230,7 +230,7 @@ def test_samples_wait_in_the_plant_until_the_simulator_takes_them(db):
     rt = Runtime(db)
     seen = []
     Lockstep(sim, rt, stride=10, wire=lambda fs: seen.extend(fs) or fs).run(1.0)
-    la = find_streams(db.messages)["AFR_UEGO"]
+    la = find_sample_streams(db.messages)["AFR_UEGO"]
     idx = [la.unpack(db.decode(f)[1])[0] for f in seen
            if f.arbitration_id == db.message(la.message).frame_id]
     # the last exchange is at 0.9 s: every sample up to it, consecutive

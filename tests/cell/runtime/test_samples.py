@@ -11,21 +11,21 @@ import pytest
 from cell.runtime.blocks import Block
 from cell.core.errors import ConfigError
 from cell.runtime.scheduler import Runtime
-from cell.runtime.samples import StreamLayout, StreamTracker, find_streams
+from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_streams
 
 
 def test_the_crank_dbc_defines_four_streams_of_four_6_deg_samples(db):
-    streams = find_streams(db.messages)
+    streams = find_sample_streams(db.messages)
     assert {"AFR_UEGO", "N_CRANK", "AFR_MANIFOLD_TRUE", "N_CYL_TRUE"} <= set(streams)
     la = streams["AFR_UEGO"]
     assert (la.n, la.step_deg, la.period_deg, la.period, la.message) == (4, 6.0, 720.0, 120,
                                                                          "CRANK_AFR_UEGO")
     # ordinary messages are not streams
-    assert StreamLayout.from_message(db.message("ENGINE_1")) is None
+    assert SampleLayout.from_message(db.message("ENGINE_1")) is None
 
 
 def test_a_frame_decodes_with_plain_cantools_as_documented(db):
-    la = find_streams(db.messages)["N_CRANK"]
+    la = find_sample_streams(db.messages)["N_CRANK"]
     # a global sample index (here one cycle and 119 samples) goes out as its angle in the cycle
     msg = db.encode(la.message, la.frame_values(120 + 119, np.array([1500.0, 1501.5, 1499, 1480])))
     m = db.db.get_message_by_name("CRANK_N")
@@ -54,18 +54,18 @@ def _run(tracker, frames):
 
 @pytest.fixture
 def layout(db):
-    return find_streams(db.messages)["AFR_UEGO"]
+    return find_sample_streams(db.messages)["AFR_UEGO"]
 
 
 def test_tracker_passes_frames_in_order_across_the_wrap(layout):
-    tr = StreamTracker(layout)
+    tr = SampleTracker(layout)
     events = _run(tr, _frames(layout, 112, 5))
     assert [e[1] for e in events] == [112, 116, 0, 4, 8]
     assert tr.counts.samples == 20 and tr.counts.lost_frames == 0 and tr.counts.gaps == 0
 
 
 def test_tracker_puts_a_swapped_pair_back_in_order(layout):
-    tr = StreamTracker(layout)
+    tr = SampleTracker(layout)
     f = list(_frames(layout, 0, 5))
     events = _run(tr, [f[0], f[2], f[1], f[3], f[4]])
     assert [e[0] for e in events] == ["samples"] * 5
@@ -74,7 +74,7 @@ def test_tracker_puts_a_swapped_pair_back_in_order(layout):
 
 
 def test_tracker_declares_a_loss_after_the_window_and_skips_ahead(layout):
-    tr = StreamTracker(layout, window=2)
+    tr = SampleTracker(layout, window=2)
     f = list(_frames(layout, 0, 8))
     events = _run(tr, [f[0], f[3], f[4], f[5], f[6], f[7]])  # frames 1 and 2 lost
     assert events[1] == ("gap", 8, 12, f[5][2])
@@ -84,7 +84,7 @@ def test_tracker_declares_a_loss_after_the_window_and_skips_ahead(layout):
 
 
 def test_tracker_drops_a_frame_whose_place_has_passed(layout):
-    tr = StreamTracker(layout, window=1)
+    tr = SampleTracker(layout, window=1)
     f = list(_frames(layout, 0, 6))
     events = _run(tr, [f[0], f[2], f[3], f[1], f[4]])  # f[1] arrives after the loss was declared
     assert tr.counts.late == 1 and tr.counts.lost_frames == 1
@@ -92,7 +92,7 @@ def test_tracker_drops_a_frame_whose_place_has_passed(layout):
 
 
 def test_tracker_follows_a_jump_of_more_than_half_a_cycle(layout):
-    tr = StreamTracker(layout, window=2)
+    tr = SampleTracker(layout, window=2)
     f = list(_frames(layout, 0, 30))
     events = _run(tr, [f[0]] + f[20:24])  # 19 frames (76 samples) never arrive
     gaps = [e for e in events if e[0] == "gap"]
@@ -123,7 +123,7 @@ class Recorder(Block):
 
 
 def _crank_frames(db, indexes, values=None):
-    la = find_streams(db.messages)["N_CRANK"]
+    la = find_sample_streams(db.messages)["N_CRANK"]
     out = []
     for k, i in enumerate(indexes):
         v = np.full(4, 1500.0 + k) if values is None else values[k]

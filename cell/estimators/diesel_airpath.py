@@ -13,7 +13,7 @@ Euler forward steps of 10 ms as seed 002, §2.2 does. At run time they measure `
   states ``Q_BIAS_1 ...``.
 
 :math:`\\hat A_q` comes from a design file written by ``testcell design bias LOG``
-(:mod:`cell.experiments.diesel_airpath`). The runtime reads the file named by the setting
+(:mod:`cell.design.diesel_airpath`). The runtime reads the file named by the setting
 ``bias_design`` (``TESTCELL_BIAS_DESIGN``); without one it uses the design shipped with the
 cell, :data:`SHIPPED_DESIGN`, made by that command on a 300 s ``etc`` log (seed 0).
 """

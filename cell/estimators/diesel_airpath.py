@@ -43,7 +43,7 @@ from cell.estimators.core import Model
 from cell.estimators.observer import ObserverBlock
 
 #: The design the runtime uses when no ``bias_design`` file is set.
-SHIPPED_DESIGN = Path(__file__).with_name("data") / "bias_large_diesel.json"
+SHIPPED_DESIGN = Path(__file__).with_name("data") / "diesel_airpath_design.json"
 #: Model outputs, one per state (N_T in rpm, the state in krpm); their bus signals are
 #: :data:`~cell.plant.diesel_airpath.SIGNAL`.
 OUTPUTS = ("P_IM", "P_EM", "N_T")

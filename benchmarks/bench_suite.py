@@ -310,9 +310,9 @@ def report(m: dict, e2e: list[dict], scripts: dict, sweep: dict, blocks: list[di
             lines.append(f"| `{r['block']}` | {r['family']} | {r['kind']} | {r['rate_hz']:g} | "
                          f"{r['us']:.1f} | {r['x_real_time']:,.0f} x |")
     lines += ["", "The crank-angle observers step once per 6° sample rather than per tick; their "
-              "cost per sample against 6,000 samples/s is `benchmarks/bench_periodic.py`. Each "
+              "cost per sample against 6,000 samples/s is `benchmarks/bench_cylinders.py`. Each "
               "observer also has its own benchmark against its real-time budget: "
-              "`bench_twc.py`, `bench_airpath.py`, `bench_bias.py`."]
+              "`bench_catalyst.py`, `bench_si_airpath.py`, `bench_diesel_airpath.py`."]
     lines += ["", "## Reproduce", "", "```sh", "scripts/bench.sh            # everything, ~5 minutes",
               "scripts/bench.sh --quick    # shorter flood and memory runs", "```", ""]
     if quick:

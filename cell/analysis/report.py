@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from cell.analysis.figures import format_table, pyplot, save
 from cell.estimators.backpressure import MAF_SAMPLES, kalman_bank, moving_average
 from cell.analysis.scores import ALWAYS_KEYS, STEP_MIN, TRUTH_KEYS, Step, find_steps, steady_mask
 from cell.analysis.series import Series
@@ -72,11 +73,7 @@ def plot_png(
     Like seed 004's Figures 7-8: the whole series on top, a 30 s zoom around the first step
     found in the truth (or the start) below; the truth in black when the log has it.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     path = Path(path)
     best: list[dict[str, Any]] = []
     for row in ranked:  # pairs with (nearly) the same gain draw the same line: plot one
@@ -116,14 +113,11 @@ def plot_png(
                       "(seed 004, Figures 7-8)")
     axes[1].set_title(f"zoom {z0:.0f}-{z1:.0f} s")
     axes[0].legend(fontsize=8, loc="best")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
-def format_table(ranked: Sequence[dict[str, Any]], top: int | None = None,
-                 refs: Sequence[dict[str, Any]] = ()) -> str:
+def format_ranked(ranked: Sequence[dict[str, Any]], top: int | None = None,
+                  refs: Sequence[dict[str, Any]] = ()) -> str:
     """The ranked table as text (``top`` rows), with reference filters below it."""
     cols = _columns(ranked)
     rows = list(ranked if top is None else ranked[:top])
@@ -137,13 +131,11 @@ def format_table(ranked: Sequence[dict[str, Any]], top: int | None = None,
             return f"{v:.3g}"
         return f"{v:.2f}"
 
-    cells = [cols] + [[fmt(c, r.get(c)) for c in cols] for r in rows]
-    widths = [max(len(row[i]) for row in cells) for i in range(len(cols))]
-    lines = ["  ".join(s.rjust(w) for s, w in zip(row, widths, strict=True)) for row in cells]
+    lines = [format_table([[fmt(c, r.get(c)) for c in cols] for r in rows], cols)]
     for ref in refs:
         vals = "  ".join(f"{k}={fmt(k, ref.get(k))}" for k in TRUTH_KEYS)
         lines.append(f"reference {ref['filter']}: {vals}")
     return "\n".join(lines)
 
 
-__all__ = ["format_table", "json_lines", "plot_png", "write_csv", "write_jsonl"]
+__all__ = ["format_ranked", "json_lines", "plot_png", "write_csv", "write_jsonl"]

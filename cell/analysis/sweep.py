@@ -60,7 +60,7 @@ import numpy as np
 
 from cell.core.errors import ConfigError
 from cell.estimators.backpressure import MAF_SAMPLES, kalman_bank, moving_average, steady_state_gain
-from cell.analysis.report import format_table, json_lines, plot_png, write_csv, write_jsonl
+from cell.analysis.report import format_ranked, json_lines, plot_png, write_csv, write_jsonl
 from cell.analysis.scores import (
     ALWAYS_KEYS,
     STEADY_TOL,
@@ -372,7 +372,7 @@ def main(args: argparse.Namespace) -> int:
         print(head, file=sys.stderr)
     else:
         print(head)
-        print(format_table(ranked, args.top, references(series)))
+        print(format_ranked(ranked, args.top, references(series)))
     for path in written:
         print(f"wrote {path}", file=sys.stderr)
     return 0

@@ -9,6 +9,7 @@ from cell.control.backpressure import BACKPRESSURE_CONTROLLERS
 from cell.core import registry
 from cell.core.registry import BlockFamily, BlockSet
 
+from cell.design.diesel_airpath import BIAS_DESIGN
 from cell.design.si_airpath import AIRPATH_DESIGN
 from cell.estimators.backpressure import native_filters
 from cell.estimators.backpressure_adaptive import adaptive_filters
@@ -19,7 +20,7 @@ from cell.estimators.si_airpath import AirPathObserver
 from cell.experiments.backpressure import CLOSED_LOOP
 from cell.experiments.catalyst import TWC
 from cell.experiments.cylinders import IMBALANCE
-from cell.experiments.diesel_airpath import BIAS, BIAS_DESIGN  # the design moves to cell.design
+from cell.experiments.diesel_airpath import BIAS
 from cell.experiments.si_airpath import AIRPATH
 from cell.plant.large_diesel import LARGE_DIESEL
 from cell.plant.si_turbo import SI_TURBO

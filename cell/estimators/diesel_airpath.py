@@ -13,7 +13,7 @@ Euler forward steps of 10 ms as seed 002, §2.2 does. At run time they measure `
   states ``Q_BIAS_1 ...``.
 
 :math:`\\hat A_q` comes from a design file written by ``testcell design bias LOG``
-(:mod:`cell.experiments.diesel_airpath`). The runtime reads the file named by the setting
+(:mod:`cell.design.diesel_airpath`). The runtime reads the file named by the setting
 ``bias_design`` (``TESTCELL_BIAS_DESIGN``); without one it uses the design shipped with the
 cell, :data:`SHIPPED_DESIGN`, made by that command on a 300 s ``etc`` log (seed 0).
 """
@@ -43,7 +43,7 @@ from cell.estimators.core import Model
 from cell.estimators.observer import ObserverBlock
 
 #: The design the runtime uses when no ``bias_design`` file is set.
-SHIPPED_DESIGN = Path(__file__).with_name("data") / "bias_large_diesel.json"
+SHIPPED_DESIGN = Path(__file__).with_name("data") / "diesel_airpath_design.json"
 #: Model outputs, one per state (N_T in rpm, the state in krpm); their bus signals are
 #: :data:`~cell.plant.diesel_airpath.SIGNAL`.
 OUTPUTS = ("P_IM", "P_EM", "N_T")

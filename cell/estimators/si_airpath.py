@@ -54,7 +54,7 @@ from cell.plant.si_airpath import MODEL_PARAMS, RPM_PER_RAD_S, SIAirPathParams, 
 
 FORMAT = "testcell-airpath-gains/1"
 #: The shipped default table, designed from an ``operating-points`` log (see README).
-DEFAULT_TABLE = Path(__file__).with_name("data") / "airpath_gains.json"
+DEFAULT_TABLE = Path(__file__).with_name("data") / "si_airpath_gains.json"
 
 #: State names of the augmented model (the plain model is the first five).
 STATES = ("p_ic", "p_im", "T_im", "p_em", "omega_tc", "dc_eta_vol")

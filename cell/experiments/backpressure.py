@@ -5,8 +5,8 @@ back-pressure valve 100 % open in open loop, switches a PI loop on to 680 mmH2O 
 three feedbacks: raw (unstable; an engine limit shut the engine down), the moving average
 (steady after 150 s) and the Kalman filter (steady after 110 s, "3.34-6.67 L" of fuel
 saved). This module reruns that experiment on the emulated cell, over several noise seeds,
-with a fourth feedback, the adaptive filter of :mod:`cell.estimators.backpressure_adaptive` (the paper's "future
-work"), and measures rather than asserts the Kalman filter's advantage.
+with a fourth feedback, the adaptive filter of :mod:`cell.estimators.backpressure_adaptive`
+(the paper's "future work"), and measures rather than asserts the Kalman filter's advantage.
 
 Lockstep
 --------
@@ -45,9 +45,9 @@ Metrics (per seed, both banks)
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
+import os
 import statistics
 import sys
 from collections.abc import Iterable, Sequence
@@ -58,16 +58,24 @@ from typing import Any
 
 import numpy as np
 
+from cell.analysis.figures import (
+    format_table,
+    format_value,
+    output_folder,
+    pyplot,
+    save,
+    write_csv,
+)
 from cell.bus import dbc as dbc_mod
-from cell.estimators.backpressure_adaptive import adaptive_filters
-from cell.control.backpressure import DEFAULT_KI, DEFAULT_KP, FEEDBACK, controllers
 from cell.bus.dbc import CellDatabase
+from cell.control.backpressure import DEFAULT_KI, DEFAULT_KP, FEEDBACK, PIController, controllers
+from cell.core import registry
 from cell.core.errors import ConfigError
 from cell.estimators.backpressure import native_filters
-from cell.core import registry
-from cell.sim.lockstep import Lockstep
+from cell.estimators.backpressure_adaptive import adaptive_filters
 from cell.plant import BANKS, TRIPPED, DutyCycle, EngineParams, ExhaustParams, large_diesel
 from cell.runtime.scheduler import Runtime
+from cell.sim.lockstep import Lockstep
 from cell.sim.simulator import Simulator
 
 FEEDBACKS = tuple(FEEDBACK)  # raw, maf, kalman, adaptive
@@ -125,11 +133,76 @@ class Summary:
         return asdict(self)
 
 
+# -- record: one case in lockstep ---------------------------------------------------------------
 def rated_hold(params: EngineParams, duration: float) -> DutyCycle:
     """A duty cycle holding rated speed and full load from t = 0 (the plant starts there)."""
     return DutyCycle("rated-hold", [(0.0, params.rated_speed, 1.0)], duration)
 
 
+@dataclass
+class Trace:
+    """A closed-loop run at every MED tick after the switch: ``t`` in s after it, and the
+    columns ``bp_<bank>`` (true back-pressure), ``demand_<bank>`` (valve demand) and
+    ``fuel`` (L/h); ``dt`` is the tick period, ``trip_time_s`` when the engine tripped."""
+
+    t: list[float]
+    cols: dict[str, list[float]]
+    dt: float
+    trip_time_s: float | None
+
+
+def case_cell(feedback: str, seed: int, kp: float, ki: float, duration: float, setpoint: float,
+              engine: EngineParams, exhaust: ExhaustParams | None, db: CellDatabase,
+              controller_settings: dict[str, Any] | None
+              ) -> tuple[Simulator, Runtime, list[PIController]]:
+    """The engine at rated with the valve fully open for ``duration`` s, and a runtime with
+    every filter and both banks' PI controllers on ``feedback``, disabled (open loop)."""
+    sim = Simulator(large_diesel(rated_hold(engine, duration), seed, initial_valve=100.0,
+                                 engine=engine, exhaust=exhaust), db)
+    ctrls = controllers(feedback, kp=kp, ki=ki, setpoint=setpoint, enable=False,
+                        **(controller_settings or {}))
+    rt = Runtime(db, [*native_filters(), *adaptive_filters(), *ctrls], history_s=1.0)
+    return sim, rt, ctrls
+
+
+def record_case(sim: Simulator, rt: Runtime, ctrls: Sequence[PIController], total: float,
+                t_enable: float, stride: int | None = None) -> Trace:
+    """Run ``total`` s in lockstep, switching the controllers on at ``t_enable``; record
+    every MED tick from then on, until the end or an engine trip."""
+    banks = sim.plant.plant("exhaust")
+    med_steps = max(1, round(rt.rates.period("MED") / sim.dt))
+    k_enable = round(t_enable / sim.dt)
+    t: list[float] = []
+    cols: dict[str, list[float]] = {f"bp_{b}": [] for b in BANKS}
+    cols.update({f"demand_{b}": [] for b in BANKS})
+    cols["fuel"] = []
+    demand_ch = [rt.channels[c.output] for c in ctrls]
+    fuel_ch = None
+
+    def enable() -> None:
+        for c in ctrls:
+            rt.set_params(c.name, {"enable": True}, family="controller")
+
+    if k_enable == 0:
+        enable()
+    for k, _ in Lockstep(sim, rt, stride=stride or med_steps).steps(round(total / sim.dt)):
+        if banks.state == TRIPPED:
+            break
+        if k == k_enable - 1:
+            enable()  # before the exchange of step k_enable: no tick runs in between
+        if k >= k_enable and k % med_steps == 0:
+            if fuel_ch is None:
+                fuel_ch = rt.channels.get("FUEL_RATE")
+            t.append(sim.t - t_enable)
+            for b, ch in zip(BANKS, demand_ch, strict=True):
+                cols[f"bp_{b}"].append(banks.truth[b])
+                cols[f"demand_{b}"].append(ch.value if ch.value is not None else math.nan)
+            cols["fuel"].append(fuel_ch.value if fuel_ch and fuel_ch.value is not None else 0.0)
+    trip_time = None if banks.trip_time is None else banks.trip_time - t_enable
+    return Trace(t, cols, med_steps * sim.dt, trip_time)
+
+
+# -- score --------------------------------------------------------------------------------------
 def _settling(t: np.ndarray, truth: np.ndarray, r: float, band: float, hold: float
               ) -> float | None:
     """First time in ``t`` from which ``truth`` stays within ``r`` ± band·r for ``hold`` s."""
@@ -143,6 +216,27 @@ def _settling(t: np.ndarray, truth: np.ndarray, r: float, band: float, hold: flo
     ok = inside & (t - t[run_start] >= hold - 1e-9)
     hits = np.nonzero(ok)[0]
     return None if hits.size == 0 else float(t[run_start[hits[0]]])
+
+
+def score_trace(tr: Trace, setpoint: float) -> dict[str, Any]:
+    """The metrics of one run (module notes): the :class:`CaseResult` fields from
+    ``settling_time_s`` to ``fuel_l``."""
+    t = np.asarray(tr.t)
+    bp = {b: np.asarray(tr.cols[f"bp_{b}"]) for b in BANKS}
+    settle_each = [_settling(t, bp[b], setpoint, BAND, HOLD_S) for b in BANKS]
+    settling = None if tr.trip_time_s is not None or None in settle_each else max(settle_each)
+    over = max(float(np.max(bp[b], initial=-math.inf)) for b in BANKS)
+    travel = [np.nansum(np.abs(np.diff(tr.cols[f"demand_{b}"]))) for b in BANKS]
+    fuel = None
+    if settling is not None:
+        upto = t < settling
+        fuel = float(np.sum(np.asarray(tr.cols["fuel"])[upto]) * tr.dt / 3600.0)
+    return {"settling_time_s": settling,
+            "overshoot_pct": max(0.0, (over - setpoint) / setpoint * 100.0),
+            "iae": float(np.mean([np.sum(np.abs(bp[b] - setpoint)) * tr.dt for b in BANKS])),
+            "valve_travel_pct": float(np.mean(travel)),
+            "tripped": tr.trip_time_s is not None, "trip_time_s": tr.trip_time_s,
+            "fuel_l": fuel}
 
 
 def closed_loop(
@@ -193,66 +287,14 @@ def closed_loop(
     if feedback not in FEEDBACK and "{bank}" not in feedback:
         raise ConfigError(f"--feedback {feedback!r} is not a feedback; choose from "
                           f"{', '.join(FEEDBACKS)}")
-    db = db or dbc_mod.load()
-    engine = engine or EngineParams()
     kp = DEFAULT_KP if kp is None else kp
     ki = DEFAULT_KI if ki is None else ki
     total = t_enable + duration
-    sim = Simulator(large_diesel(rated_hold(engine, total), seed, initial_valve=100.0,
-                                 engine=engine, exhaust=exhaust), db)
-    banks = sim.plant.plant("exhaust")
-    ctrls = controllers(feedback, kp=kp, ki=ki, setpoint=setpoint, enable=False,
-                        **(controller_settings or {}))
-    rt = Runtime(db, [*native_filters(), *adaptive_filters(), *ctrls], history_s=1.0)
-    med_steps = max(1, round(rt.rates.period("MED") / sim.dt))
-    n_total = round(total / sim.dt)
-    k_enable = round(t_enable / sim.dt)
-    rec_t: list[float] = []
-    rec: dict[str, list[float]] = {f"bp_{b}": [] for b in BANKS}
-    rec.update({f"demand_{b}": [] for b in BANKS})
-    rec["fuel"] = []
-    demand_ch = [rt.channels[c.output] for c in ctrls]
-    fuel_ch = None
-
-    def enable() -> None:
-        for c in ctrls:
-            rt.set_params(c.name, {"enable": True}, family="controller")
-
-    if k_enable == 0:
-        enable()
-    for k, _ in Lockstep(sim, rt, stride=stride or med_steps).steps(n_total):
-        if banks.state == TRIPPED:
-            break
-        if k == k_enable - 1:
-            enable()  # before the exchange of step k_enable: no tick runs in between
-        if k >= k_enable and k % med_steps == 0:
-            if fuel_ch is None:
-                fuel_ch = rt.channels.get("FUEL_RATE")
-            rec_t.append(sim.t - t_enable)
-            for b, ch in zip(BANKS, demand_ch, strict=True):
-                rec[f"bp_{b}"].append(banks.truth[b])
-                rec[f"demand_{b}"].append(ch.value if ch.value is not None else math.nan)
-            rec["fuel"].append(fuel_ch.value if fuel_ch and fuel_ch.value is not None else 0.0)
-    trip_time = None if banks.trip_time is None else banks.trip_time - t_enable
-    t = np.asarray(rec_t)
-    bp = {b: np.asarray(rec[f"bp_{b}"]) for b in BANKS}
-    settle_each = [_settling(t, bp[b], setpoint, BAND, HOLD_S) for b in BANKS]
-    settling = None if trip_time is not None or None in settle_each else max(settle_each)
-    dt_rec = med_steps * sim.dt
-    over = max(float(np.max(bp[b], initial=-math.inf)) for b in BANKS)
-    overshoot = max(0.0, (over - setpoint) / setpoint * 100.0)
-    iae = float(np.mean([np.sum(np.abs(bp[b] - setpoint)) * dt_rec for b in BANKS]))
-    travel = float(np.mean([np.nansum(np.abs(np.diff(rec[f"demand_{b}"]))) for b in BANKS]))
-    fuel = None
-    if settling is not None:
-        upto = t < settling
-        fuel = float(np.sum(np.asarray(rec["fuel"])[upto]) * dt_rec / 3600.0)
-    return CaseResult(
-        feedback=feedback, seed=seed, kp=kp, ki=ki, settling_time_s=settling,
-        overshoot_pct=overshoot, iae=iae, valve_travel_pct=travel,
-        tripped=trip_time is not None, trip_time_s=trip_time, fuel_l=fuel,
-        trace={"t": rec_t, **rec} if trace else None,
-    )
+    sim, rt, ctrls = case_cell(feedback, seed, kp, ki, total, setpoint, engine or EngineParams(),
+                               exhaust, db or dbc_mod.load(), controller_settings)
+    tr = record_case(sim, rt, ctrls, total, t_enable, stride)
+    return CaseResult(feedback=feedback, seed=seed, kp=kp, ki=ki, **score_trace(tr, setpoint),
+                      trace={"t": tr.t, **tr.cols} if trace else None)
 
 
 def summarise(cases: Sequence[CaseResult]) -> Summary:
@@ -281,7 +323,15 @@ def summarise(cases: Sequence[CaseResult]) -> Summary:
     )
 
 
-# -- running many cases ---------------------------------------------------------------------
+def best_gains(grid: dict[tuple[float, float], Summary]) -> Summary:
+    """The grid point with the shortest median settling (ties: the least valve travel)."""
+    def key(s: Summary) -> tuple[float, float]:
+        st = s.settling_time_s if s.settling_time_s is not None else math.inf
+        return (st, s.valve_travel_pct)
+    return min(grid.values(), key=key)
+
+
+# -- many cases: over seeds, over gains -----------------------------------------------------------
 def _run_case(job: tuple[str, int, float, float, float, bool]) -> CaseResult:
     feedback, seed, kp, ki, duration, trace = job
     return closed_loop(feedback, seed, kp, ki, duration=duration, trace=trace)
@@ -360,71 +410,12 @@ def gain_map(
     return out
 
 
-def best_gains(grid: dict[tuple[float, float], Summary]) -> Summary:
-    """The grid point with the shortest median settling (ties: the least valve travel)."""
-    def key(s: Summary) -> tuple[float, float]:
-        st = s.settling_time_s if s.settling_time_s is not None else math.inf
-        return (st, s.valve_travel_pct)
-    return min(grid.values(), key=key)
-
-
-# -- output -----------------------------------------------------------------------------------
-def _fmt(v: Any, spec: str = ".1f") -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, float):
-        return format(v, spec)
-    return str(v)
-
-
-def format_table(summaries: Sequence[Summary]) -> str:
-    """The printed comparison: one row per feedback, medians over seeds."""
-    head = ["feedback", "settle s", "spread s", "settled", "overshoot %", "IAE mmH2O·s",
-            "travel %", "trips", "fuel L"]
-    rows = [[s.feedback, _fmt(s.settling_time_s), _fmt(s.settling_spread_s),
-             f"{s.settled}/{s.seeds}", _fmt(s.overshoot_pct), _fmt(s.iae, ".0f"),
-             _fmt(s.valve_travel_pct, ".0f"), f"{s.trips}/{s.seeds}", _fmt(s.fuel_l, ".2f")]
-            for s in summaries]
-    widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
-    lines = ["  ".join(h.rjust(w) for h, w in zip(head, widths, strict=True))]
-    lines += ["  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in rows]
-    return "\n".join(lines)
-
-
-def write_cases_csv(path: Path, cases: Sequence[CaseResult]) -> Path:
-    rows = [c.row() for c in cases]
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    return path
-
-
-def write_summary_csv(path: Path, summaries: Sequence[Summary]) -> Path:
-    rows = [s.as_json() for s in summaries]
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    return path
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
+# -- figures ------------------------------------------------------------------------------------
 def plot_figure10(path: Path, cases: Sequence[CaseResult], summaries: Sequence[Summary],
                   setpoint: float = SETPOINT) -> Path:
     """Seed 004 Figure 10: back-pressure and valve demand over time, one panel per feedback
     (seed 0's run; truth of bank R, demand of bank R on the right axis)."""
-    plt = _pyplot()
+    plt = pyplot()
     traced = {c.feedback: c for c in cases if c.trace is not None}
     order = [s.feedback for s in summaries if s.feedback in traced]
     fig, axes = plt.subplots(len(order), 1, figsize=(10, 2.6 * len(order)), sharex=True,
@@ -455,15 +446,12 @@ def plot_figure10(path: Path, cases: Sequence[CaseResult], summaries: Sequence[S
         h2, l2 = ax2.get_legend_handles_labels()
         ax2.legend(handles + h2, labels + l2, fontsize=7, loc="upper right", ncol=2)
     axes[-1, 0].set_xlabel("time after switching to closed loop [s]")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def plot_gain_map(path: Path, grids: dict[str, dict[tuple[float, float], Summary]]) -> Path:
     """Median settling time over kp × ki, one heat map per feedback; ✕ = never settles."""
-    plt = _pyplot()
+    plt = pyplot()
     fbs = list(grids)
     fig, axes = plt.subplots(1, len(fbs), figsize=(4.8 * len(fbs), 4.6), squeeze=False,
                              layout="constrained")
@@ -485,19 +473,70 @@ def plot_gain_map(path: Path, grids: dict[str, dict[tuple[float, float], Summary
                 ax.text(j, i, "✕" if np.isnan(v) else f"{v:.0f}", ha="center", va="center",
                         fontsize=8, color="w" if np.isnan(v) or v > vmax / 2 else "k")
         best = best_gains(grid)
-        ax.set_title(f"{fb}: best {_fmt(best.settling_time_s, '.0f')} s\n"
+        ax.set_title(f"{fb}: best {format_value(best.settling_time_s, '.0f')} s\n"
                      f"at kp={best.kp:g}, ki={best.ki:g}", fontsize=9)
         ax.set_xticks(range(len(kis)), [f"{k:g}" for k in kis], rotation=45, ha="right")
         ax.set_yticks(range(len(kps)), [f"{k:g}" for k in kps])
         ax.set_xlabel("ki [%/(mmH2O·s)]")
         ax.set_ylabel("kp [%/mmH2O]")
     fig.colorbar(im, ax=axes[0].tolist(), label="median settling time [s]")
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
-# -- command line -----------------------------------------------------------------------------
+# -- report and files ---------------------------------------------------------------------------
+def format_summaries(summaries: Sequence[Summary]) -> str:
+    """The printed comparison: one row per feedback, medians over seeds."""
+    head = ["feedback", "settle s", "spread s", "settled", "overshoot %", "IAE mmH2O·s",
+            "travel %", "trips", "fuel L"]
+    return format_table([[s.feedback, format_value(s.settling_time_s),
+                          format_value(s.settling_spread_s), f"{s.settled}/{s.seeds}",
+                          format_value(s.overshoot_pct), format_value(s.iae, ".0f"),
+                          format_value(s.valve_travel_pct, ".0f"), f"{s.trips}/{s.seeds}",
+                          format_value(s.fuel_l, ".2f")] for s in summaries], head)
+
+
+def format_report(summaries: Sequence[Summary], seeds: int) -> str:
+    """The set-up, the table and, with both, the Kalman against the moving average."""
+    lines = [f"closed loop to {SETPOINT:g} mmH2O from 100 % open at rated; kp={summaries[0].kp:g}"
+             f" %/mmH2O, ki={summaries[0].ki:g} %/(mmH2O·s); medians over {seeds} seeds",
+             format_summaries(summaries)]
+    by = {s.feedback: s for s in summaries}
+    if {"kalman", "maf"} <= set(by) and by["kalman"].settling_time_s and \
+            by["maf"].settling_time_s:
+        ratio = by["kalman"].settling_time_s / by["maf"].settling_time_s
+        saved = (by["maf"].fuel_l or 0.0) - (by["kalman"].fuel_l or 0.0)
+        lines.append(f"Kalman/MA settling ratio {ratio:.2f}; fuel saved by Kalman feedback "
+                     f"{saved:.2f} L per set-up (seed 004: 110/150 s = 0.73)")
+    return "\n".join(lines)
+
+
+def format_best_gains(grids: dict[str, dict[tuple[float, float], Summary]]) -> str:
+    lines = ["gain map: best gains per filter (median settling over seeds)"]
+    for fb, grid in grids.items():
+        b = best_gains(grid)
+        lines.append(f"  {fb:>9}: kp={b.kp:g} ki={b.ki:g} settling "
+                     f"{format_value(b.settling_time_s)} s (spread "
+                     f"{format_value(b.settling_spread_s)} s, travel {b.valve_travel_pct:.0f} %)")
+    return "\n".join(lines)
+
+
+def write_comparison(out: Path, summaries: Sequence[Summary], cases: Sequence[CaseResult]
+                     ) -> list[str]:
+    """The cases and the summaries as CSV, and Figure 10; the names written."""
+    write_csv(out / "closed_loop_cases.csv", [c.row() for c in cases])
+    write_csv(out / "closed_loop.csv", [s.as_json() for s in summaries])
+    plot_figure10(out / "closed_loop.png", cases, summaries)
+    return ["closed_loop.csv", "closed_loop_cases.csv", "closed_loop.png"]
+
+
+def write_gain_map(out: Path, grids: dict[str, dict[tuple[float, float], Summary]]) -> list[str]:
+    """The gain map as CSV and as heat maps; the names written."""
+    write_csv(out / "gain_map.csv", [s.as_json() for g in grids.values() for s in g.values()])
+    plot_gain_map(out / "gain_map.png", grids)
+    return ["gain_map.csv", "gain_map.png"]
+
+
+# -- command line -------------------------------------------------------------------------------
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``testcell experiment closed-loop`` options to ``parser``."""
     parser.add_argument("--feedback", default=",".join(FEEDBACKS),
@@ -564,8 +603,6 @@ def check_arguments(args: argparse.Namespace) -> dict[str, Any]:
     jobs = getattr(args, "jobs", None)
     if jobs is not None and jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
-    import os
-
     return {
         "feedbacks": feedbacks, "seeds": seeds, "duration": duration,
         "kps": _float_list("--grid-kp", getattr(args, "grid_kp", "0.005")),
@@ -578,48 +615,19 @@ def main(args: argparse.Namespace) -> int:
     """Run ``testcell experiment closed-loop``; return the exit code (ConfigError on bad
     options, raised before any work)."""
     opts = check_arguments(args)
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out {out}: cannot create the folder: {exc.strerror}") from None
+    out = output_folder(args.out)
     progress = not getattr(args, "quiet", False)
+    report = sys.stderr if args.json else sys.stdout
     summaries, cases = compare(opts["feedbacks"], opts["seeds"], args.kp, args.ki,
                                opts["duration"], opts["workers"], progress)
-    table = format_table(summaries)
-    head = (f"closed loop to {SETPOINT:g} mmH2O from 100 % open at rated; kp={summaries[0].kp:g}"
-            f" %/mmH2O, ki={summaries[0].ki:g} %/(mmH2O·s); medians over {opts['seeds']} seeds")
-    report = sys.stderr if args.json else sys.stdout
-    print(head, file=report)
-    print(table, file=report)
-    by = {s.feedback: s for s in summaries}
-    if {"kalman", "maf"} <= set(by) and by["kalman"].settling_time_s and \
-            by["maf"].settling_time_s:
-        ratio = by["kalman"].settling_time_s / by["maf"].settling_time_s
-        saved = (by["maf"].fuel_l or 0.0) - (by["kalman"].fuel_l or 0.0)
-        print(f"Kalman/MA settling ratio {ratio:.2f}; fuel saved by Kalman feedback "
-              f"{saved:.2f} L per set-up (seed 004: 110/150 s = 0.73)", file=report)
-    write_cases_csv(out / "closed_loop_cases.csv", cases)
-    write_summary_csv(out / "closed_loop.csv", summaries)
-    plot_figure10(out / "closed_loop.png", cases, summaries)
-    files = ["closed_loop.csv", "closed_loop_cases.csv", "closed_loop.png"]
+    print(format_report(summaries, opts["seeds"]), file=report)
+    files = write_comparison(out, summaries, cases)
     if args.gain_map:
         filters = [f for f in opts["feedbacks"] if f != "raw"] or ["maf", "kalman"]
         grids = gain_map(filters, opts["kps"], opts["kis"], opts["seeds"], opts["duration"],
                          opts["workers"], progress)
-        rows = [s.as_json() for g in grids.values() for s in g.values()]
-        with open(out / "gain_map.csv", "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
-        plot_gain_map(out / "gain_map.png", grids)
-        files += ["gain_map.csv", "gain_map.png"]
-        print("gain map: best gains per filter (median settling over seeds)", file=report)
-        for fb, grid in grids.items():
-            b = best_gains(grid)
-            print(f"  {fb:>9}: kp={b.kp:g} ki={b.ki:g} settling {_fmt(b.settling_time_s)} s "
-                  f"(spread {_fmt(b.settling_spread_s)} s, travel {b.valve_travel_pct:.0f} %)",
-                  file=report)
+        files += write_gain_map(out, grids)
+        print(format_best_gains(grids), file=report)
     print(f"wrote {', '.join(files)} to {out}", file=sys.stderr)
     if args.json:
         for s in summaries:

@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from cell.analysis.figures import format_table, format_value, pyplot, save
 from cell.bus import dbc as dbc_mod
 from cell.core.errors import ConfigError
 from cell.estimators.catalyst import DEFAULT_Q, Q4_DEFAULT, TWCObserver
@@ -59,6 +60,7 @@ BAND = 0.10
 WARM = 350.0  # °C: T_CAT above which SOX is scored (the observer adapts OSC above it too)
 
 
+# -- record ------------------------------------------------------------------------------------
 @dataclass
 class Recording:
     """One drive at the observer's ticks: times, the inputs it reads and the truth."""
@@ -134,6 +136,7 @@ def record(osc_true: float = 1.0, duration: float | None = None, *, cycle: str =
     return Recording(np.array(times), inputs, truth, osc_true, cycle, seed)
 
 
+# -- estimate ----------------------------------------------------------------------------------
 @dataclass
 class Estimate:
     """An observer's outputs at every tick of a :class:`Recording` (NaN where not valid)."""
@@ -193,7 +196,7 @@ def naive_sox(rec: Recording, kinetics: TWCKinetics | None = None) -> np.ndarray
     return out
 
 
-# -- metrics -------------------------------------------------------------------------------------
+# -- score -------------------------------------------------------------------------------------
 def convergence_time(t: np.ndarray, est: np.ndarray, truth: np.ndarray, band: float = BAND
                      ) -> float | None:
     """First time after which ``est`` stays within ±band of ``truth`` (relative)."""
@@ -255,61 +258,71 @@ def score(rec: Recording, est: Estimate, case: str, osc_init: float, q4: float,
 
 
 # -- figures -------------------------------------------------------------------------------------
-def _figures(rec: Recording, main: Estimate, by_init: dict[float, Estimate],
-             by_q4: dict[float, Estimate], q4_init: float, out: Path) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def plot_figure4(path: Path, rec: Recording, est: Estimate) -> Path:
+    """Figure 4: λ_mid measured against predicted (whole drive, 1000-1100 s), the mean SOX
+    and the OSC estimate against the truth."""
+    plt = pyplot()
     t = rec.t
-    paths = []
     fig, ax = plt.subplots(4, 1, figsize=(11, 11))
     lam = rec.inputs["LAMBDA_MID"]
     for a, (lo, hi) in zip(ax[:2], ((t[0], t[-1]), (1000.0, 1100.0))):
         m = (t >= lo) & (t <= hi)
         a.plot(t[m], lam[m], lw=0.6, label="λ_mid measured")
-        a.plot(t[m], main.lambda_mid[m], lw=0.6, label="λ_mid predicted (LAMBDA_MID_EST)")
+        a.plot(t[m], est.lambda_mid[m], lw=0.6, label="λ_mid predicted (LAMBDA_MID_EST)")
         a.set_ylim(0.9, 1.1)
         a.set_ylabel("λ_mid")
         a.legend(loc="upper right", fontsize=8)
     ax[1].set_title("zoom: 1000-1100 s", fontsize=9)
     ax[2].plot(t, rec.truth["SOX_TRUE"], lw=0.7, label="SOX_TRUE")
-    ax[2].plot(t, main.sox, lw=0.7, label="SOX_EST (mean φ̂)")
+    ax[2].plot(t, est.sox, lw=0.7, label="SOX_EST (mean φ̂)")
     ax[2].set_ylabel("SOX")
     ax[2].legend(loc="upper right", fontsize=8)
     ax[3].plot(t, rec.truth["OSC_TRUE"], "k--", lw=1, label="OSC_TRUE")
-    ax[3].plot(t, main.osc, lw=1, label="OSC_EST")
+    ax[3].plot(t, est.osc, lw=1, label="OSC_EST")
     ax[3].set_ylabel("OSC (normalised)")
     ax[3].set_xlabel("time (s)")
     ax[3].legend(loc="upper right", fontsize=8)
     fig.suptitle("Figure 4 (seed 000): dual EKF on the FTP-like cycle")
-    fig.tight_layout()
-    paths.append(out / "figure4_twc.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
-    for name, cases, label in (("figure5_osc_init.png", by_init, "initial OSC"),
-                               ("figure6_q4.png", by_q4, "Q4")):
-        fig, a = plt.subplots(figsize=(10, 4.5))
-        a.plot(t, rec.truth["OSC_TRUE"], "k--", lw=1, label="OSC_TRUE")
-        band = rec.truth["OSC_TRUE"]
-        a.fill_between(t, band * (1 - BAND), band * (1 + BAND), color="0.9", label="±10 %")
-        for key, est in cases.items():
-            a.plot(t, est.osc, lw=1, label=f"{label} {key:g}")
-        a.set_xlabel("time (s)")
-        a.set_ylabel("OSC_EST (normalised to fresh)")
-        a.legend(loc="upper right", fontsize=8)
-        title = ("Figure 5 (seed 000): OSC from several initial guesses" if label == "initial OSC"
-                 else f"Figure 6 (seed 000): OSC for several Q4 (initial guess {q4_init:g})")
-        a.set_title(title)
-        fig.tight_layout()
-        paths.append(out / name)
-        fig.savefig(paths[-1], dpi=110)
-        plt.close(fig)
-    return paths
+    return save(fig, path)
+
+
+def plot_osc_cases(path: Path, rec: Recording, cases: dict[float, Estimate], label: str,
+                   title: str) -> Path:
+    """Figures 5 and 6: OSC_EST of several cases (``label`` and its value) in the ±10 % band
+    about the truth."""
+    plt = pyplot()
+    t = rec.t
+    fig, a = plt.subplots(figsize=(10, 4.5))
+    a.plot(t, rec.truth["OSC_TRUE"], "k--", lw=1, label="OSC_TRUE")
+    band = rec.truth["OSC_TRUE"]
+    a.fill_between(t, band * (1 - BAND), band * (1 + BAND), color="0.9", label="±10 %")
+    for key, est in cases.items():
+        a.plot(t, est.osc, lw=1, label=f"{label} {key:g}")
+    a.set_xlabel("time (s)")
+    a.set_ylabel("OSC_EST (normalised to fresh)")
+    a.legend(loc="upper right", fontsize=8)
+    a.set_title(title)
+    return save(fig, path)
+
+
+def figures(out: Path, rec: Recording, main: Estimate, by_init: dict[float, Estimate],
+            by_q4: dict[float, Estimate], q4_init: float) -> list[Path]:
+    """Figures 4-6 of seed 000 in ``out``."""
+    return [plot_figure4(out / "figure4_twc.png", rec, main),
+            plot_osc_cases(out / "figure5_osc_init.png", rec, by_init, "initial OSC",
+                           "Figure 5 (seed 000): OSC from several initial guesses"),
+            plot_osc_cases(out / "figure6_q4.png", rec, by_q4, "Q4",
+                           f"Figure 6 (seed 000): OSC for several Q4 (initial guess {q4_init:g})")]
 
 
 # -- the experiment ------------------------------------------------------------------------------
+def case_grid(osc_inits, q4s, q4_init: float) -> list[tuple[str, float, float]]:
+    """``(name, initial OSC, Q4)`` of every case: the initial guesses at the default Q4
+    (Figure 5), then the Q4 values from ``q4_init`` (Figure 6)."""
+    return ([(f"osc_init={g:g}", g, Q4_DEFAULT) for g in osc_inits]
+            + [(f"q4={q:g}", q4_init, q) for q in q4s])
+
+
 def run(osc_inits=(0.5, 1.0, 1.5), q4s=(Q4_DEFAULT, 10 * Q4_DEFAULT), osc_true: float = 1.0,
         q4_init: float = 0.5, duration: float | None = None, seed: int = 0,
         out: Path | None = None, progress: bool = False, kinetics: TWCKinetics | None = None
@@ -322,27 +335,36 @@ def run(osc_inits=(0.5, 1.0, 1.5), q4s=(Q4_DEFAULT, 10 * Q4_DEFAULT), osc_true: 
 
     rec = record(osc_true, duration, seed=seed, progress=progress)
     naive = naive_sox(rec)
-    q_phi = DEFAULT_Q[:3]
-    cases: list[tuple[str, float, float]] = [(f"osc_init={g:g}", g, Q4_DEFAULT) for g in osc_inits]
-    cases += [(f"q4={q:g}", q4_init, q) for q in q4s]
-    done: dict[tuple[float, float], Estimate] = {}
-    results, estimates = [], {}
-    for name, g, q in tqdm(cases, unit="case", desc="observers", disable=not progress):
+    todo = case_grid(osc_inits, q4s, q4_init)
+    done: dict[tuple[float, float], Estimate] = {}  # one observer per (initial OSC, Q4)
+    for _, g, q in tqdm(todo, unit="case", desc="observers", disable=not progress):
         if (g, q) not in done:
-            done[(g, q)] = observe(rec, osc_init=g, Q=(*q_phi, q), kinetics=kinetics)
-        estimates[name] = done[(g, q)]
-        results.append(score(rec, done[(g, q)], name, g, q, naive))
+            done[(g, q)] = observe(rec, osc_init=g, Q=(*DEFAULT_Q[:3], q), kinetics=kinetics)
+    estimates = {name: done[(g, q)] for name, g, q in todo}
+    results = [score(rec, done[(g, q)], name, g, q, naive) for name, g, q in todo]
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        main = done.get((1.0, Q4_DEFAULT)) or estimates[cases[0][0]]
-        _figures(rec, main, {g: done[(g, Q4_DEFAULT)] for g in osc_inits},
-                 {q: done[(q4_init, q)] for q in q4s}, q4_init, out)
+        main = done.get((1.0, Q4_DEFAULT)) or estimates[todo[0][0]]
+        figures(out, rec, main, {g: done[(g, Q4_DEFAULT)] for g in osc_inits},
+                {q: done[(q4_init, q)] for q in q4s}, q4_init)
         with open(out / "twc_cases.json", "w") as fh:
             for r in results:
                 fh.write(json.dumps(r.as_json()) + "\n")
     return rec, results, estimates
 
 
+def format_results(results: list[CaseResult]) -> str:
+    """The printed table, one row per case."""
+    head = ["case", "OSC true", "conv. s", "reach s", "ripple", "OSC end", "SOX RMSE", "naive",
+            "resets"]
+    rows = [[r.case, f"{r.osc_true:.3f}", format_value(r.convergence_s, ".0f", "never"),
+             format_value(r.reach_s, ".0f", "never"), f"{r.ripple:.4f}", f"{r.osc_final:.3f}",
+             f"{r.sox_rmse:.4f}", f"{r.sox_rmse_naive:.4f}", f"{r.resets:d}"] for r in results]
+    return format_table(rows, head, widths=(16, 8, 8, 8, 7, 8, 9, 7, 6), align="<" + ">" * 8,
+                        sep=" ")
+
+
+# -- command line --------------------------------------------------------------------------------
 def _float_list(option: str, text: str, lo: float, hi: float) -> list[float]:
     out = []
     for part in str(text).split(","):
@@ -354,6 +376,29 @@ def _float_list(option: str, text: str, lo: float, hi: float) -> list[float]:
             raise ConfigError(f"{option} {text!r}: each value must be in ({lo:g}, {hi:g}], got {v:g}")
         out.append(v)
     return out
+
+
+#: Model constants ``--mismatch`` may scale.
+MISMATCH_KEYS = ("A1", "E1", "A2", "E2", "dG1", "dG2", "y_c", "osc_fresh")
+
+
+def parse_mismatch(text: str) -> TWCKinetics:
+    """``A1=0.8,A2=1.2`` -> the plant's :class:`TWCKinetics` with those factors applied."""
+    factors: dict[str, float] = {}
+    for part in text.split(","):
+        key, sep, value = part.partition("=")
+        key = key.strip()
+        if not sep or key not in MISMATCH_KEYS:
+            raise ConfigError(f"--mismatch {text!r}: {part.strip()!r} is not NAME=FACTOR with NAME "
+                              f"one of {', '.join(MISMATCH_KEYS)}")
+        try:
+            f = float(value)
+        except ValueError:
+            raise ConfigError(f"--mismatch {text!r}: {value.strip()!r} is not a number") from None
+        if not (math.isfinite(f) and 0.1 <= f <= 10.0):
+            raise ConfigError(f"--mismatch {text!r}: a factor must be in [0.1, 10], got {f:g}")
+        factors[key] = f
+    return TWCKinetics().scaled(**factors)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -380,33 +425,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-#: Model constants ``--mismatch`` may scale.
-MISMATCH_KEYS = ("A1", "E1", "A2", "E2", "dG1", "dG2", "y_c", "osc_fresh")
-
-
-def parse_mismatch(text: str) -> TWCKinetics:
-    """``A1=0.8,A2=1.2`` -> the plant's :class:`TWCKinetics` with those factors applied."""
-    factors: dict[str, float] = {}
-    for part in text.split(","):
-        key, sep, value = part.partition("=")
-        key = key.strip()
-        if not sep or key not in MISMATCH_KEYS:
-            raise ConfigError(f"--mismatch {text!r}: {part.strip()!r} is not NAME=FACTOR with NAME "
-                              f"one of {', '.join(MISMATCH_KEYS)}")
-        try:
-            f = float(value)
-        except ValueError:
-            raise ConfigError(f"--mismatch {text!r}: {value.strip()!r} is not a number") from None
-        if not (math.isfinite(f) and 0.1 <= f <= 10.0):
-            raise ConfigError(f"--mismatch {text!r}: a factor must be in [0.1, 10], got {f:g}")
-        factors[key] = f
-    return TWCKinetics().scaled(**factors)
-
-
-def _fmt(v: float | None, spec: str = ".0f") -> str:
-    return "never" if v is None else format(v, spec)
-
-
 def main(args: argparse.Namespace) -> int:
     inits = _float_list("--osc-init", args.osc_inits, 0.05, 4.0)
     q4s = _float_list("--q4", args.q4, 0.0, 1.0)
@@ -422,13 +440,7 @@ def main(args: argparse.Namespace) -> int:
     _, results, _ = run(inits, q4s, args.osc_true, args.q4_init, args.duration, args.seed, out,
                         progress=not args.quiet, kinetics=kinetics)
     table = sys.stderr if args.json else sys.stdout
-    head = (f"{'case':<16} {'OSC true':>8} {'conv. s':>8} {'reach s':>8} {'ripple':>7} "
-            f"{'OSC end':>8} {'SOX RMSE':>9} {'naive':>7} {'resets':>6}")
-    print(head, file=table)
-    for r in results:
-        print(f"{r.case:<16} {r.osc_true:>8.3f} {_fmt(r.convergence_s):>8} {_fmt(r.reach_s):>8} "
-              f"{r.ripple:>7.4f} {r.osc_final:>8.3f} {r.sox_rmse:>9.4f} {r.sox_rmse_naive:>7.4f} "
-              f"{r.resets:>6d}", file=table)
+    print(format_results(results), file=table)
     print(f"figures and twc_cases.json in {out}/", file=table)
     if args.json:
         for r in results:

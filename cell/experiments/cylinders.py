@@ -32,18 +32,19 @@ from typing import Any
 import can
 import numpy as np
 
+from cell.analysis.figures import pyplot, save
 from cell.bus.dbc import CellDatabase, load
+from cell.bus.scenario import scenario_frames
 from cell.core.errors import ConfigError
+from cell.core.registry import Experiment
 from cell.estimators.cylinders import CYCLE, RodInversion, UegoInversion
-from cell.sim.lockstep import Lockstep
 from cell.plant.cylinders import N_CYL
 from cell.plant.si_engine import steady_cycle
 from cell.plant.si_turbo import si_turbo
-from cell.core.registry import Experiment
-from cell.runtime.scheduler import Runtime
-from cell.bus.scenario import scenario_frames
-from cell.sim.simulator import Simulator
 from cell.runtime.samples import find_sample_streams
+from cell.runtime.scheduler import Runtime
+from cell.sim.lockstep import Lockstep
+from cell.sim.simulator import Simulator
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,130 @@ class Case:
         return tuple(int(i) + 1 for i in np.nonzero(dev >= 0.99 * dev.max())[0])
 
 
+# -- record: the engine and the observers in lockstep ----------------------------------------------
+def lossy_wire(db: CellDatabase, drop: float, swap: float, seed: int
+               ) -> Callable[[list[can.Message]], list[can.Message]]:
+    """A bus that loses crank sensor frames with probability ``drop`` and delivers one after
+    the next of its stream with probability ``swap``."""
+    rng = np.random.default_rng([seed, 0x10])
+    ids = {db.message(m).frame_id for m in ("CRANK_AFR_UEGO", "CRANK_N")}
+
+    def wire(frames: list[can.Message]) -> list[can.Message]:
+        out: list[can.Message] = []
+        held: dict[int, can.Message] = {}
+        for f in frames:
+            if f.arbitration_id not in ids:
+                out.append(f)
+                continue
+            if rng.random() < drop:
+                continue
+            prev = held.pop(f.arbitration_id, None)
+            if prev is None and rng.random() < swap:
+                held[f.arbitration_id] = f
+                continue
+            out.append(f)
+            if prev is not None:
+                out.append(prev)
+        out.extend(held.values())
+        return out
+
+    return wire
+
+
+class SampleTruth:
+    """The truth streams of the 6 deg sample frames (``AFR_MANIFOLD_TRUE``, ``N_CYL_TRUE``),
+    read on the frames' way to the runtime: each value by (frame time in µs, angle index)."""
+
+    def __init__(self, db: CellDatabase, names: Sequence[str] = ("AFR_MANIFOLD_TRUE", "N_CYL_TRUE")
+                 ) -> None:
+        self.db = db
+        self.layouts = {db.message(la.message).frame_id: la
+                        for la in find_sample_streams(db.messages).values()}
+        self.values: dict[str, dict[tuple[int, int], float]] = {n: {} for n in names}
+
+    def read(self, frames: list[can.Message]) -> None:
+        for f in frames:
+            la = self.layouts.get(f.arbitration_id)
+            if la is not None and la.name in self.values:
+                idx, vals = la.unpack(self.db.decode(f)[1])
+                key_t = round(f.timestamp * 1e6)
+                for k, v in enumerate(vals):
+                    self.values[la.name][(key_t, (idx + k) % CYCLE)] = v
+
+    def beside(self, block: UegoInversion | RodInversion, stream: str) -> np.ndarray:
+        """The block's trace (t, angle index, measured, reconstructed) with the truth of
+        ``stream`` at each sample as a fifth column."""
+        tr = np.concatenate(block.trace) if block.trace else np.zeros((0, 4))
+        tv = self.values[stream]
+        true = np.array([tv.get((round(r[0] * 1e6), int(r[1])), math.nan) for r in tr])
+        return np.column_stack([tr, true]) if len(tr) else np.zeros((0, 5))
+
+
+#: Channels of the observers recorded at every tick.
+TICK_CHANNELS = (["IMBALANCE_CYL"] + [f"AFR_HARM_{k}" for k in (1, 2, 3)]
+                 + [f"TORQUE_BALANCE_{i}" for i in range(1, N_CYL + 1)])
+
+
+class TickRecorder:
+    """At every MED tick: :data:`TICK_CHANNELS`, the UEGO observer's per-cylinder AFR
+    (estimated and measured) and the true IMEP and AFR of each cylinder."""
+
+    def __init__(self, rt: Runtime, comp, uego: UegoInversion) -> None:
+        self.rt, self.comp, self.uego = rt, comp, uego
+        self.rows: list[list[float]] = []
+        self.afr_true: list[list[float]] = []
+
+    def __call__(self, t: float) -> None:
+        ch, sig = self.rt.channels, self.comp.signals
+        self.afr_true.append([sig[f"AFR_CYL_{i}_TRUE"] for i in range(1, N_CYL + 1)])
+        vals = [ch[n].value if ch[n].status == "ok" else math.nan for n in TICK_CHANNELS]
+        vals = [math.nan if v is None else v for v in vals]
+        s = self.uego.state()
+        self.rows.append([t, *vals, *s["afr_cyl_est"], *s["afr_cyl_measured"],
+                          *(sig[f"IMEP_CYL_{i}_TRUE"] for i in range(1, N_CYL + 1))])
+
+    def columns(self) -> dict[str, np.ndarray]:
+        a = np.array(self.rows)
+        n = len(TICK_CHANNELS)
+        return {"t": a[:, 0], "diagnosis": a[:, 1], "harmonics": a[:, 2:5],
+                "balance": a[:, 5:1 + n], "cyl_est": a[:, 1 + n:1 + n + 4],
+                "cyl_meas": a[:, 5 + n:9 + n], "imep": a[:, 9 + n:13 + n]}
+
+
+def run_case(case: Case, db: CellDatabase | None = None,
+             wire: Callable[[list[can.Message]], list[can.Message]] | None = None) -> CaseResult:
+    """Run one case offline (module docstring); ``wire`` may further impair the frames the
+    runtime receives (after the case's own ``drop``/``swap``)."""
+    db = db or load()
+    comp = si_turbo(steady_cycle(case.rpm, case.load, case.duration), case.seed,
+                    imbalance=(0.0,) * N_CYL)
+    sim = Simulator(comp, db)
+    uego, rod = UegoInversion(record=True), RodInversion(record=True)
+    rt = Runtime(db, [uego, rod])
+    truth = SampleTruth(db)
+    ticks = TickRecorder(rt, comp, uego)
+    impair = lossy_wire(db, case.drop, case.swap, case.seed) if case.drop or case.swap else None
+
+    def bus(frames: list[can.Message]) -> list[can.Message]:
+        truth.read(frames)
+        frames = frames if impair is None else impair(frames)
+        return frames if wire is None else wire(frames)
+
+    command = scenario_frames(db, {f"fuel_offset_cyl_{i + 1}": v for i, v in enumerate(case.offsets)})
+    on = False
+    for _k, _ in Lockstep(sim, rt, on_tick=ticks, wire=bus).steps(round(case.duration / sim.dt)):
+        if not on and sim.t >= case.t_on - 1e-9:
+            for f in command:
+                sim.receive(f)  # what `testcell scenario` puts on the bus
+            on = True
+    c = ticks.columns()
+    return CaseResult(case, c["t"], c["diagnosis"], c["harmonics"], c["cyl_est"], c["cyl_meas"],
+                      c["balance"], c["imep"], truth.beside(uego, "AFR_MANIFOLD_TRUE"),
+                      truth.beside(rod, "N_CYL_TRUE"), np.array(ticks.afr_true),
+                      rt.health()["streams"], {"afr": uego.state(), "rod": rod.state()})
+
+
+# -- score ----------------------------------------------------------------------------------
 @dataclass
 class CaseResult:
     case: Case
@@ -168,134 +293,38 @@ def xcorr_lag(ref: np.ndarray, sig: np.ndarray, max_lag: int = CYCLE // 2 - 1) -
     return arg
 
 
-def lossy_wire(db: CellDatabase, drop: float, swap: float, seed: int
-               ) -> Callable[[list[can.Message]], list[can.Message]]:
-    """A bus that loses crank sensor frames with probability ``drop`` and delivers one after
-    the next of its stream with probability ``swap``."""
-    rng = np.random.default_rng([seed, 0x10])
-    ids = {db.message(m).frame_id for m in ("CRANK_AFR_UEGO", "CRANK_N")}
-
-    def wire(frames: list[can.Message]) -> list[can.Message]:
-        out: list[can.Message] = []
-        held: dict[int, can.Message] = {}
-        for f in frames:
-            if f.arbitration_id not in ids:
-                out.append(f)
-                continue
-            if rng.random() < drop:
-                continue
-            prev = held.pop(f.arbitration_id, None)
-            if prev is None and rng.random() < swap:
-                held[f.arbitration_id] = f
-                continue
-            out.append(f)
-            if prev is not None:
-                out.append(prev)
-        out.extend(held.values())
-        return out
-
-    return wire
-
-
-def run_case(case: Case, db: CellDatabase | None = None,
-             wire: Callable[[list[can.Message]], list[can.Message]] | None = None) -> CaseResult:
-    """Run one case offline (module docstring); ``wire`` may further impair the frames the
-    runtime receives (after the case's own ``drop``/``swap``)."""
-    db = db or load()
-    comp = si_turbo(steady_cycle(case.rpm, case.load, case.duration), case.seed,
-                    imbalance=(0.0,) * N_CYL)
-    sim = Simulator(comp, db)
-    uego, rod = UegoInversion(record=True), RodInversion(record=True)
-    rt = Runtime(db, [uego, rod])
-    layouts = {db.message(la.message).frame_id: la for la in find_sample_streams(db.messages).values()}
-    truth: dict[str, dict[tuple[int, int], float]] = {"AFR_MANIFOLD_TRUE": {}, "N_CYL_TRUE": {}}
-    rows: list[list[float]] = []
-    afr_true: list[list[float]] = []
-    names = (["IMBALANCE_CYL"] + [f"AFR_HARM_{k}" for k in (1, 2, 3)]
-             + [f"TORQUE_BALANCE_{i}" for i in range(1, N_CYL + 1)])
-
-    def on_tick(t: float) -> None:
-        ch = rt.channels
-        afr_true.append([comp.signals[f"AFR_CYL_{i}_TRUE"] for i in range(1, N_CYL + 1)])
-        vals = [ch[n].value if ch[n].status == "ok" else math.nan for n in names]
-        vals = [math.nan if v is None else v for v in vals]
-        s = uego.state()
-        rows.append([t, *vals, *s["afr_cyl_est"], *s["afr_cyl_measured"],
-                     *(comp.signals[f"IMEP_CYL_{i}_TRUE"] for i in range(1, N_CYL + 1))])
-
-    impair = lossy_wire(db, case.drop, case.swap, case.seed) if case.drop or case.swap else None
-
-    def bus(frames: list[can.Message]) -> list[can.Message]:
-        for f in frames:
-            la = layouts.get(f.arbitration_id)
-            if la is not None and la.name in truth:
-                idx, vals = la.unpack(db.decode(f)[1])
-                key_t = round(f.timestamp * 1e6)
-                for k, v in enumerate(vals):
-                    truth[la.name][(key_t, (idx + k) % CYCLE)] = v
-        frames = frames if impair is None else impair(frames)
-        return frames if wire is None else wire(frames)
-
-    command = scenario_frames(db, {f"fuel_offset_cyl_{i + 1}": v for i, v in enumerate(case.offsets)})
-    on = False
-    for _k, _ in Lockstep(sim, rt, on_tick=on_tick, wire=bus).steps(round(case.duration / sim.dt)):
-        if not on and sim.t >= case.t_on - 1e-9:
-            for f in command:
-                sim.receive(f)  # what `testcell scenario` puts on the bus
-            on = True
-    a = np.array(rows)
-    n = len(names)
-
-    def traced(block, stream: str) -> np.ndarray:
-        tr = np.concatenate(block.trace) if block.trace else np.zeros((0, 4))
-        tv = truth[stream]
-        true = np.array([tv.get((round(r[0] * 1e6), int(r[1])), math.nan) for r in tr])
-        return np.column_stack([tr, true]) if len(tr) else np.zeros((0, 5))
-
-    return CaseResult(case, a[:, 0], a[:, 1], a[:, 2:5], a[:, 1 + n:1 + n + 4],
-                      a[:, 5 + n:9 + n], a[:, 5:1 + n], a[:, 9 + n:13 + n],
-                      traced(uego, "AFR_MANIFOLD_TRUE"), traced(rod, "N_CYL_TRUE"),
-                      np.array(afr_true), rt.health()["streams"],
-                      {"afr": uego.state(), "rod": rod.state()})
-
-
 # -- figures --------------------------------------------------------------------------------
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 CYL_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red")
+
+
+def _reconstruction(x: np.ndarray, trace: np.ndarray, labels: Sequence[str]):
+    """A figure of a trace's truth, measurement and reconstruction (columns 4, 2 and 3) over
+    ``x``; the figure and its axes."""
+    fig, ax = pyplot().subplots(figsize=(8, 3.6))
+    for col, color, lw, label in zip((4, 2, 3), ("0.6", "tab:blue", "tab:red"), (0.8, 1.0, 1.0),
+                                     labels, strict=True):
+        ax.plot(x, trace[:, col], color=color, lw=lw, label=label)
+    return fig, ax
 
 
 def plot_afr(path: Path, r: CaseResult) -> Path:
     """Figure 4: the UEGO against the reconstructed manifold AFR (and the truth)."""
-    plt = _pyplot()
     a = r.afr_trace
     c = r.case
-    sel = (a[:, 0] > c.t_on - 0.3) & (a[:, 0] < c.t_on + 0.6)
-    fig, ax = plt.subplots(figsize=(8, 3.6))
-    ax.plot(a[sel, 0], a[sel, 4], color="0.6", lw=0.8, label="true manifold AFR (simulator)")
-    ax.plot(a[sel, 0], a[sel, 2], color="tab:blue", lw=1.0, label="measured AFR (UEGO)")
-    ax.plot(a[sel, 0], a[sel, 3], color="tab:red", lw=1.0, label="reconstructed AFR (observer)")
+    a = a[(a[:, 0] > c.t_on - 0.3) & (a[:, 0] < c.t_on + 0.6)]
+    fig, ax = _reconstruction(a[:, 0], a, ("true manifold AFR (simulator)", "measured AFR (UEGO)",
+                                           "reconstructed AFR (observer)"))
     ax.axvline(c.t_on, color="k", ls=":", lw=0.8)
     ax.set(xlabel="time [s]", ylabel="AFR [-]",
            title=f"Figure 4: AFR reconstruction, {c.name} at t = {c.t_on:g} s, {c.rpm:g} rpm")
     ax.legend(fontsize=8, loc="lower left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def plot_diagnosis(path: Path, r: CaseResult, number: int) -> Path:
     """Figures 5 and 7: true IMEP, then the exhaust-phase mean of the measured and of the
     reconstructed AFR, per cylinder."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
     for i in range(N_CYL):
         kw = {"color": CYL_COLORS[i], "lw": 1.0, "label": f"cylinder {i + 1}"}
@@ -309,15 +338,12 @@ def plot_diagnosis(path: Path, r: CaseResult, number: int) -> Path:
     axes[1].set(ylabel="AFR, measured")
     axes[2].set(ylabel="AFR, estimated", xlabel="time [s]")
     axes[0].legend(fontsize=8, ncol=4)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def plot_harmonics(path: Path, r: CaseResult, number: int) -> Path:
     """Figures 6 and 8: the harmonic energies E(k) of the reconstructed AFR."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 3.4))
     for k in range(3):
         ax.plot(r.t, r.harmonics[:, k], lw=1.2, label=f"E({k + 1})")
@@ -325,36 +351,27 @@ def plot_harmonics(path: Path, r: CaseResult, number: int) -> Path:
     ax.set(xlabel="time [s]", ylabel="energy [AFR]",
            title=f"Figure {number}: harmonic energies, {r.case.name}")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def plot_crank(path: Path, r: CaseResult) -> Path:
     """Figure 11: measured and reconstructed crank speed over two engine cycles."""
-    plt = _pyplot()
     a = r.crank_trace
     a = a[a[:, 0] > r.case.duration - 0.5]
     start = int(np.argmax(a[:, 1] == 0))
     a = a[start:start + 2 * CYCLE]
-    deg = np.arange(len(a)) * 6.0
-    fig, ax = plt.subplots(figsize=(8, 3.6))
-    ax.plot(deg, a[:, 4], color="0.6", lw=0.8, label="true speed next to the cylinders")
-    ax.plot(deg, a[:, 2], color="tab:blue", lw=1.0, label="measured N_e,meas (end of the rod)")
-    ax.plot(deg, a[:, 3], color="tab:red", lw=1.0, label="reconstructed N_e,est (observer)")
+    fig, ax = _reconstruction(np.arange(len(a)) * 6.0, a, (
+        "true speed next to the cylinders", "measured N_e,meas (end of the rod)",
+        "reconstructed N_e,est (observer)"))
     ax.set(xlabel="crank angle [deg]", ylabel="engine speed [rpm]",
            title=f"Figure 11: engine speed reconstruction over 2 cycles, {r.case.rpm:g} rpm")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def plot_balance(path: Path, r: CaseResult) -> Path:
     """Figure 12: true IMEP per cylinder above the balance energy V_i - mean(V)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(2, 1, figsize=(6, 5.5))
     x = np.arange(1, N_CYL + 1)
     axes[0].bar(x, r.imep[-1], color=CYL_COLORS)
@@ -366,10 +383,44 @@ def plot_balance(path: Path, r: CaseResult) -> Path:
     axes[1].set(ylabel="balance energy [rpm²]", xlabel="cylinder")
     for ax in axes:
         ax.set_xticks(x)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
+
+
+def figures(out: Path, r: CaseResult) -> list[Path]:
+    """The paper's figures of one case: 7 and 8 for two cylinders offset, else 4-6, 11, 12."""
+    if sum(1 for o in r.case.offsets if o) == 2:
+        return [plot_diagnosis(out / "fig7_diagnosis_opposite.png", r, 7),
+                plot_harmonics(out / "fig8_harmonics_opposite.png", r, 8)]
+    return [plot_afr(out / "fig4_afr_reconstruction.png", r),
+            plot_diagnosis(out / "fig5_diagnosis.png", r, 5),
+            plot_harmonics(out / "fig6_harmonics.png", r, 6),
+            plot_crank(out / "fig11_crank_speed.png", r),
+            plot_balance(out / "fig12_torque_balance.png", r)]
+
+
+# -- the experiment -------------------------------------------------------------------------
+def run(cases: Sequence[Case], out: Path | None, progress: bool = True) -> list[CaseResult]:
+    """Run the cases with a progress bar; write the figures to ``out``."""
+    from tqdm import tqdm
+
+    db = load()
+    results = [run_case(case, db)
+               for case in tqdm(cases, unit="case", desc="imbalance", disable=not progress)]
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        for r in results:
+            figures(out, r)
+    return results
+
+
+def format_result(j: dict[str, Any]) -> str:
+    """One case's numbers (:meth:`CaseResult.as_json`) as a sentence."""
+    return (f"{j['case']}: diagnosed cylinder {j['diagnosed_cylinder']} after "
+            f"{j['diagnosis_cycles']} engine cycles; E(k) before "
+            f"{j['harmonics_before']} after {j['harmonics_after']}; phase lag behind "
+            f"the true AFR: UEGO {j['phase_lag_sensor_deg']} deg, reconstruction "
+            f"{j['phase_lag_estimate_deg']} deg; torque balance {j['torque_balance']} "
+            f"(IMEP {j['imep_true']} bar)")
 
 
 # -- command line ---------------------------------------------------------------------------
@@ -417,44 +468,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON line per case")
 
 
-def run(cases: Sequence[Case], out: Path | None, progress: bool = True) -> list[CaseResult]:
-    """Run the cases with a progress bar; write the figures to ``out``."""
-    from tqdm import tqdm
-
-    db = load()
-    results = []
-    for case in tqdm(cases, unit="case", desc="imbalance", disable=not progress):
-        results.append(run_case(case, db))
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        for r in results:
-            if sum(1 for o in r.case.offsets if o) == 2:
-                plot_diagnosis(out / "fig7_diagnosis_opposite.png", r, 7)
-                plot_harmonics(out / "fig8_harmonics_opposite.png", r, 8)
-            else:
-                plot_afr(out / "fig4_afr_reconstruction.png", r)
-                plot_diagnosis(out / "fig5_diagnosis.png", r, 5)
-                plot_harmonics(out / "fig6_harmonics.png", r, 6)
-                plot_crank(out / "fig11_crank_speed.png", r)
-                plot_balance(out / "fig12_torque_balance.png", r)
-    return results
-
-
 def main(args: argparse.Namespace) -> int:
     cases = cases_from_args(args)
     out = Path(args.out) if args.out else None
-    results = run(cases, out, progress=not args.json)
-    for r in results:
+    for r in run(cases, out, progress=not args.json):
         j = r.as_json()
-        if args.json:
-            print(json.dumps(j))
-        else:
-            print(f"{j['case']}: diagnosed cylinder {j['diagnosed_cylinder']} after "
-                  f"{j['diagnosis_cycles']} engine cycles; E(k) before "
-                  f"{j['harmonics_before']} after {j['harmonics_after']}; phase lag behind "
-                  f"the true AFR: UEGO {j['phase_lag_sensor_deg']} deg, reconstruction "
-                  f"{j['phase_lag_estimate_deg']} deg; torque balance {j['torque_balance']} "
-                  f"(IMEP {j['imep_true']} bar)")
+        print(json.dumps(j) if args.json else format_result(j))
     if out is not None and not args.json:
         print(f"figures in {out}/")
     return 0

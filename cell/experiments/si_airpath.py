@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from cell.analysis.figures import format_table, output_folder, pyplot, save
 from cell.core.errors import ConfigError
 from cell.estimators.si_airpath import AirPathObserver, GainTable
 from cell.core.registry import Experiment
@@ -215,31 +216,25 @@ class Result:
         return asdict(self)
 
 
-def analyse(run: dict[str, np.ndarray], est: dict[str, dict[str, np.ndarray]]) -> Result:
-    """The numbers of the experiment from a run and its three observer variants."""
+def matched_lowpass(run: dict[str, np.ndarray], steady: list[tuple[float, float]],
+                    ratio: float, n_meas: float) -> float:
+    """The coefficient of the low-pass whose noise reduction is the observer's ``ratio``: it
+    is linear, so its noise is the filtered measurement noise; bisection on the coefficient."""
     t = run["t"]
-    dt = float(np.median(np.diff(t)))
-    steady = [(a + SETTLE, b) for a, b in holds(run)]
-    aug, plain, model = est["augmented"], est["plain"], est["model"]
-    truth = run["P_IM_TRUE"]
-    n_meas = _noise(t, run["P_IM"] - truth, steady)
-    n_est = _noise(t, aug["P_IM_EST"] - truth, steady)
-    ratio = n_est / n_meas
-    # the low-pass with the same noise reduction: it is linear, so its noise is the filtered
-    # measurement noise; bisection on its coefficient
-    noise = run["P_IM"] - truth
+    noise = run["P_IM"] - run["P_IM_TRUE"]
     lo, hi = 1e-5, 1.0
     for _ in range(50):
         a = math.sqrt(lo * hi)
         r = _noise(t, lowpass(noise, a), steady) / n_meas
         lo, hi = (lo, a) if r > ratio else (a, hi)
-    a_lpf = math.sqrt(lo * hi)
-    lpf = lowpass(run["P_IM"], a_lpf)
-    lags_est, lags_lpf, lags_meas = [], [], []
-    for t_step in step_times(run):
-        lags_est.append(_lag(t, aug["P_IM_EST"], truth, t_step, dt))
-        lags_lpf.append(_lag(t, lpf, truth, t_step, dt))
-        lags_meas.append(_lag(t, run["P_IM"], truth, t_step, dt))
+    return math.sqrt(lo * hi)
+
+
+def step_cases(run: dict[str, np.ndarray], est: dict[str, dict[str, np.ndarray]]
+               ) -> list[StepCase]:
+    """The stationary errors over the last :data:`WINDOW` s of every hold after a step."""
+    t, truth = run["t"], run["P_IM_TRUE"]
+    aug, plain, model = est["augmented"], est["plain"], est["model"]
     cases = []
     for a, b in holds(run)[1:]:
         sel = (t >= b - WINDOW) & (t <= b)
@@ -257,6 +252,27 @@ def analyse(run: dict[str, np.ndarray], est: dict[str, dict[str, np.ndarray]]) -
             cac_err_plain_pct=100.0 * (m(plain["CAC_EST"]) - cac) / cac,
             cac_err_augmented_pct=100.0 * (m(aug["CAC_EST"]) - cac) / cac,
             n_tc_err_pct=100.0 * (m(aug["N_TC_EST"]) - m(run["N_TC_TRUE"])) / m(run["N_TC_TRUE"])))
+    return cases
+
+
+def analyse(run: dict[str, np.ndarray], est: dict[str, dict[str, np.ndarray]]) -> Result:
+    """The numbers of the experiment from a run and its three observer variants."""
+    t = run["t"]
+    dt = float(np.median(np.diff(t)))
+    steady = [(a + SETTLE, b) for a, b in holds(run)]
+    aug, plain = est["augmented"], est["plain"]
+    truth = run["P_IM_TRUE"]
+    n_meas = _noise(t, run["P_IM"] - truth, steady)
+    n_est = _noise(t, aug["P_IM_EST"] - truth, steady)
+    ratio = n_est / n_meas
+    a_lpf = matched_lowpass(run, steady, ratio, n_meas)
+    lpf = lowpass(run["P_IM"], a_lpf)
+    lags_est, lags_lpf, lags_meas = [], [], []
+    for t_step in step_times(run):
+        lags_est.append(_lag(t, aug["P_IM_EST"], truth, t_step, dt))
+        lags_lpf.append(_lag(t, lpf, truth, t_step, dt))
+        lags_meas.append(_lag(t, run["P_IM"], truth, t_step, dt))
+    cases = step_cases(run, est)
     ok = np.isfinite(aug["CAC_EST"]) & (t > holds(run)[1][0])  # after the first hold
 
     def rms_pct(y):
@@ -273,15 +289,139 @@ def analyse(run: dict[str, np.ndarray], est: dict[str, dict[str, np.ndarray]]) -
         cases=cases)
 
 
+# -- the experiment ----------------------------------------------------------------------------
 def run_experiment(seed: int = 0, hold: float = 8.0, table: GainTable | None = None,
                    progress: bool = False) -> tuple[dict, dict, Result]:
+    """Record one run, step the three observer variants over it, score them."""
     run = simulate(seed, hold, progress=progress)
     est = {v: observe(run, v, table) for v in tqdm(VARIANTS, desc="observers", disable=not progress)}
     return run, est, analyse(run, est)
 
 
+# -- figures -----------------------------------------------------------------------------------
+def _step_window(run: dict, case: int = 1) -> np.ndarray:
+    """The ticks from 2 s before the step of hold ``case`` to 6 s after it."""
+    a, _ = holds(run)[case]
+    return (run["t"] >= a - 2.0) & (run["t"] <= a + 6.0)
+
+
+#: Line styles of the figures' traces.
+MEASURED = {"color": "0.6", "lw": 0.8, "label": "measured"}
+MODEL = {"color": "C0", "ls": ":", "lw": 1.2, "label": "model"}
+OBSERVER = {"color": "C3", "lw": 1.4, "label": "observer"}
+AUGMENTED = {"color": "C2", "lw": 1.5, "label": "augmented observer"}
+
+
+def _lines(ax, t: np.ndarray, lines, label: str) -> None:
+    """``(y, style)`` lines on ``ax`` (``style``: the keywords of ``plot``), its y label and
+    grid."""
+    for y, style in lines:
+        ax.plot(t, y, **style)
+    ax.set_ylabel(label)
+    ax.grid(alpha=0.3)
+
+
+def plot_figure1(path: Path, run: dict, est: dict, case: int = 1) -> Path:
+    """Figure 1: the default model alone against the engine on a step."""
+    plt = pyplot()
+    sel = _step_window(run, case)
+    t, m = run["t"][sel], est["model"]
+    fig, ax = plt.subplots(2, 2, figsize=(10, 6.5))
+    panels = (("P_IM", "p_im [kPa]", 0, 0), ("T_IM", "T_im [°C]", 0, 1), ("P_IC", "p_ic [kPa]", 1, 0),
+              ("N_TC", "N_tc [rpm]", 1, 1))
+    for name, label, i, j in panels:
+        _lines(ax[i][j], t, ((run[name][sel], MEASURED),
+                             (run[name + "_TRUE"][sel],
+                              {"color": "k", "ls": "--", "lw": 1.0, "label": "engine (truth)"}),
+                             (m[name + "_EST"][sel], MODEL | {"ls": "-", "lw": 1.4})), label)
+    ax[0][0].legend(fontsize=8)
+    ax[1][0].set_xlabel("time [s]")
+    ax[1][1].set_xlabel("time [s]")
+    fig.suptitle("Seed 003, Figure 1: the default model against the engine on a throttle step at 1800 rpm")
+    return save(fig, path)
+
+
+def plot_figure3(path: Path, table: GainTable) -> Path:
+    """Figure 3: feedback gains of the table over the air mass flow of its points."""
+    from cell.plant.si_airpath import MODEL_PARAMS, flows
+
+    plt = pyplot()
+    w = np.array([flows(p.x, p.u, MODEL_PARAMS).w_ac for p in table.points])
+    K = np.array([p.K["plain"] for p in table.points])  # (points, 5, 2): feedback P_IC, P_IM
+    speed = np.array([p.speed for p in table.points])
+    fig, ax = plt.subplots(2, 2, figsize=(10, 7), constrained_layout=True)
+    panels = ((0, 0, "p_ic from measured p_ic [-]"), (1, 1, "p_im from measured p_im [-]"),
+              (1, 0, "p_im from measured p_ic [-]"), (4, 0, "ω_tc from measured p_ic [rad/s per Pa]"))
+    for k, (row, col, title) in enumerate(panels):
+        axx = ax[k // 2][k % 2]
+        sc = axx.scatter(w, K[:, row, col], c=speed, cmap="viridis", s=25)
+        axx.set_title(title, fontsize=9)
+        axx.set_xlabel("air mass flow [kg/s]")
+        axx.grid(alpha=0.3)
+    fig.colorbar(sc, ax=ax, label="engine speed [rpm]")
+    fig.suptitle(f"Seed 003, Figure 3: feedback gains over the operating points (dt = {table.dt:g} s)")
+    return save(fig, path)
+
+
+def plot_figure5(path: Path, run: dict, est: dict, case: int = 1) -> Path:
+    """Figure 5: the observer without ΔCη_vol on a step."""
+    plt = pyplot()
+    sel = _step_window(run, case)
+    t = run["t"][sel]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    for axx, name, label in ((ax[0], "P_IC", "p_ic [kPa]"), (ax[1], "P_IM", "p_im [kPa]")):
+        _lines(axx, t, ((run[name][sel], MEASURED), (est["model"][name + "_EST"][sel], MODEL),
+                        (est["plain"][name + "_EST"][sel], OBSERVER),
+                        (run[name + "_TRUE"][sel],
+                         {"color": "k", "ls": "--", "lw": 0.9, "label": "truth"})), label)
+        axx.set_xlabel("time [s]")
+    ax[1].legend(fontsize=8)
+    fig.suptitle("Seed 003, Figure 5: the observer without ΔCη_vol (a stationary error remains)")
+    return save(fig, path)
+
+
+def plot_figure6(path: Path, run: dict, est: dict, case: int = 1) -> Path:
+    """Figure 6: the augmented observer on a step: p_im, CAC, ΔCη_vol and N_tc."""
+    plt = pyplot()
+    sel = _step_window(run, case)
+    t = run["t"][sel]
+    aug, plain, model = est["augmented"], est["plain"], est["model"]
+    observer = OBSERVER | {"ls": "--", "lw": 1.0}
+    fig, ax = plt.subplots(2, 2, figsize=(10, 6.5))
+    _lines(ax[0][0], t, ((run["P_IM"][sel], MEASURED), (model["P_IM_EST"][sel], MODEL),
+                         (plain["P_IM_EST"][sel], observer), (aug["P_IM_EST"][sel], AUGMENTED)),
+           "p_im [kPa]")
+    _lines(ax[0][1], t, ((run["CAC_TRUE"][sel], {"color": "k", "ls": "--", "lw": 1.0,
+                                                  "label": "truth"}),
+                         (plain["CAC_EST"][sel], observer), (aug["CAC_EST"][sel], AUGMENTED)),
+           "CAC [mg/cyl/cycle]")
+    _lines(ax[1][0], t, ((aug["DC_ETA_VOL_EST"][sel], {"color": "C2", "lw": 1.5}),), "ΔCη_vol [-]")
+    _lines(ax[1][1], t, ((run["N_TC"][sel], MEASURED), (model["N_TC_EST"][sel], MODEL),
+                         (aug["N_TC_EST"][sel], AUGMENTED)), "N_tc [rpm]")
+    for x in (ax[0][0], ax[0][1], ax[1][1]):
+        x.legend(fontsize=8)
+    for row in ax:
+        for x in row:
+            x.set_xlabel("time [s]")
+    fig.suptitle("Seed 003, Figure 6: the augmented observer (feedback from p_ic and p_im)")
+    return save(fig, path)
+
+
+def figures(out: Path, run: dict, est: dict, table: GainTable) -> list[Path]:
+    """Seed 003's Figures 1, 3, 5 and 6 in ``out``."""
+    return [plot_figure1(out / "figure1_model.png", run, est),
+            plot_figure3(out / "figure3_gains.png", table),
+            plot_figure5(out / "figure5_observer.png", run, est),
+            plot_figure6(out / "figure6_augmented.png", run, est)]
+
+
 # -- report ------------------------------------------------------------------------------------
-def format_table(r: Result) -> str:
+#: Widths of the step-case table's columns (two spaces apart; a wider gap is in the width).
+CASE_WIDTHS = (4, 6, 4, 5, 7, 10, 11, 9, 10, 10, 6, 9)
+
+
+def format_report(r: Result) -> str:
+    """The printed numbers: noise, lag, N_TC and CAC, then the step cases."""
     lines = [
         f"P_IM noise at steady state (std about segment means, vs truth): measured "
         f"{r.noise_meas_kpa:.2f} kPa, observer {r.noise_est_kpa:.2f} kPa (ratio {r.noise_ratio:.2f})",
@@ -299,139 +439,14 @@ def format_table(r: Result) -> str:
         "                   kPa    plain     augmented      plain     augmented     kPa          "
         "plain  augmented   %",
     ]
-    for i, c in enumerate(r.cases, 1):
-        lines.append(
-            f"{i:4d}  {c.t_step:6.1f}  {c.load:4.2f}  {c.p_im_true:5.1f}  {c.plain_vs_meas:+7.2f}"
-            f"   {c.augmented_vs_meas:+9.2f}      {c.plain_vs_true:+7.2f}  {c.augmented_vs_true:+9.2f}"
-            f"     {c.model_vs_true:+7.2f}      {c.cac_err_plain_pct:+6.2f}  "
-            f"{c.cac_err_augmented_pct:+6.2f}     {c.n_tc_err_pct:+6.2f}")
+    rows = [[f"{i:d}", f"{c.t_step:.1f}", f"{c.load:.2f}", f"{c.p_im_true:.1f}",
+             *(f"{v:+.2f}" for v in (c.plain_vs_meas, c.augmented_vs_meas, c.plain_vs_true,
+                                     c.augmented_vs_true, c.model_vs_true, c.cac_err_plain_pct,
+                                     c.cac_err_augmented_pct, c.n_tc_err_pct))]
+            for i, c in enumerate(r.cases, 1)]
+    if rows:
+        lines.append(format_table(rows, widths=CASE_WIDTHS))
     return "\n".join(lines)
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _step_window(run: dict, case: int = 1) -> tuple[float, float]:
-    a, b = holds(run)[case]
-    return a - 2.0, a + 6.0
-
-
-def plot_figure1(path: Path, run: dict, est: dict, case: int = 1) -> Path:
-    plt = _pyplot()
-    t = run["t"]
-    a, b = _step_window(run, case)
-    sel = (t >= a) & (t <= b)
-    m = est["model"]
-    fig, ax = plt.subplots(2, 2, figsize=(10, 6.5))
-    panels = (("P_IM", "p_im [kPa]", 0, 0), ("T_IM", "T_im [°C]", 0, 1), ("P_IC", "p_ic [kPa]", 1, 0),
-              ("N_TC", "N_tc [rpm]", 1, 1))
-    for name, label, i, j in panels:
-        axx = ax[i][j]
-        axx.plot(t[sel], run[name][sel], color="0.6", lw=0.8, label="measured")
-        axx.plot(t[sel], run[name + "_TRUE"][sel], "k--", lw=1.0, label="engine (truth)")
-        axx.plot(t[sel], m[name + "_EST"][sel], "C0", lw=1.4, label="model")
-        axx.set_ylabel(label)
-        axx.grid(alpha=0.3)
-    ax[0][0].legend(fontsize=8)
-    ax[1][0].set_xlabel("time [s]")
-    ax[1][1].set_xlabel("time [s]")
-    fig.suptitle("Seed 003, Figure 1: the default model against the engine on a throttle step at 1800 rpm")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def plot_figure3(path: Path, table: GainTable) -> Path:
-    from cell.plant.si_airpath import MODEL_PARAMS, flows
-
-    plt = _pyplot()
-    w = np.array([flows(p.x, p.u, MODEL_PARAMS).w_ac for p in table.points])
-    K = np.array([p.K["plain"] for p in table.points])  # (points, 5, 2): feedback P_IC, P_IM
-    speed = np.array([p.speed for p in table.points])
-    fig, ax = plt.subplots(2, 2, figsize=(10, 7), constrained_layout=True)
-    panels = ((0, 0, "p_ic from measured p_ic [-]"), (1, 1, "p_im from measured p_im [-]"),
-              (1, 0, "p_im from measured p_ic [-]"), (4, 0, "ω_tc from measured p_ic [rad/s per Pa]"))
-    for k, (row, col, title) in enumerate(panels):
-        axx = ax[k // 2][k % 2]
-        sc = axx.scatter(w, K[:, row, col], c=speed, cmap="viridis", s=25)
-        axx.set_title(title, fontsize=9)
-        axx.set_xlabel("air mass flow [kg/s]")
-        axx.grid(alpha=0.3)
-    fig.colorbar(sc, ax=ax, label="engine speed [rpm]")
-    fig.suptitle(f"Seed 003, Figure 3: feedback gains over the operating points (dt = {table.dt:g} s)")
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def plot_figure5(path: Path, run: dict, est: dict, case: int = 1) -> Path:
-    plt = _pyplot()
-    t = run["t"]
-    a, b = _step_window(run, case)
-    sel = (t >= a) & (t <= b)
-    e = est["plain"]
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    for axx, name, label in ((ax[0], "P_IC", "p_ic [kPa]"), (ax[1], "P_IM", "p_im [kPa]")):
-        axx.plot(t[sel], run[name][sel], color="0.6", lw=0.8, label="measured")
-        axx.plot(t[sel], est["model"][name + "_EST"][sel], "C0:", lw=1.2, label="model")
-        axx.plot(t[sel], e[name + "_EST"][sel], "C3", lw=1.4, label="observer")
-        axx.plot(t[sel], run[name + "_TRUE"][sel], "k--", lw=0.9, label="truth")
-        axx.set_ylabel(label)
-        axx.set_xlabel("time [s]")
-        axx.grid(alpha=0.3)
-    ax[1].legend(fontsize=8)
-    fig.suptitle("Seed 003, Figure 5: the observer without ΔCη_vol (a stationary error remains)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def plot_figure6(path: Path, run: dict, est: dict, case: int = 1) -> Path:
-    plt = _pyplot()
-    t = run["t"]
-    a, b = _step_window(run, case)
-    sel = (t >= a) & (t <= b)
-    aug, plain, model = est["augmented"], est["plain"], est["model"]
-    fig, ax = plt.subplots(2, 2, figsize=(10, 6.5))
-    x = ax[0][0]
-    x.plot(t[sel], run["P_IM"][sel], color="0.6", lw=0.8, label="measured")
-    x.plot(t[sel], model["P_IM_EST"][sel], "C0:", lw=1.2, label="model")
-    x.plot(t[sel], plain["P_IM_EST"][sel], "C3--", lw=1.0, label="observer")
-    x.plot(t[sel], aug["P_IM_EST"][sel], "C2", lw=1.5, label="augmented observer")
-    x.set_ylabel("p_im [kPa]")
-    x.legend(fontsize=8)
-    x = ax[0][1]
-    x.plot(t[sel], run["CAC_TRUE"][sel], "k--", lw=1.0, label="truth")
-    x.plot(t[sel], plain["CAC_EST"][sel], "C3--", lw=1.0, label="observer")
-    x.plot(t[sel], aug["CAC_EST"][sel], "C2", lw=1.5, label="augmented observer")
-    x.set_ylabel("CAC [mg/cyl/cycle]")
-    x.legend(fontsize=8)
-    x = ax[1][0]
-    x.plot(t[sel], aug["DC_ETA_VOL_EST"][sel], "C2", lw=1.5)
-    x.set_ylabel("ΔCη_vol [-]")
-    x = ax[1][1]
-    x.plot(t[sel], run["N_TC"][sel], color="0.6", lw=0.8, label="measured")
-    x.plot(t[sel], model["N_TC_EST"][sel], "C0:", lw=1.2, label="model")
-    x.plot(t[sel], aug["N_TC_EST"][sel], "C2", lw=1.5, label="augmented observer")
-    x.set_ylabel("N_tc [rpm]")
-    x.legend(fontsize=8)
-    for row in ax:
-        for x in row:
-            x.grid(alpha=0.3)
-            x.set_xlabel("time [s]")
-    fig.suptitle("Seed 003, Figure 6: the augmented observer (feedback from p_ic and p_im)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 # -- command line ------------------------------------------------------------------------------
@@ -451,20 +466,13 @@ def main(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.hold) and args.hold >= SETTLE + WINDOW):
         raise ConfigError(f"--hold must be at least {SETTLE + WINDOW:g} s, got {args.hold}")
     table = GainTable.load(args.table) if args.table else GainTable.load()
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out {out}: cannot create the folder ({exc.strerror or exc})") from None
+    out = output_folder(args.out)
     run, est, result = run_experiment(args.seed, args.hold, table, progress=not args.quiet)
-    figs = [plot_figure1(out / "figure1_model.png", run, est),
-            plot_figure3(out / "figure3_gains.png", table),
-            plot_figure5(out / "figure5_observer.png", run, est),
-            plot_figure6(out / "figure6_augmented.png", run, est)]
+    figs = figures(out, run, est, table)
     if args.json:
         print(json.dumps(result.as_json() | {"figures": [str(f) for f in figs]}, indent=1))
     else:
-        print(format_table(result))
+        print(format_report(result))
         print("\nfigures: " + ", ".join(str(f) for f in figs))
     return 0
 

@@ -23,7 +23,7 @@ SEEDS = 5
 def results():
     summaries, cases = compare(("raw", "maf", "kalman"), seeds=SEEDS, progress=False)
     print()
-    print(experiment.format_table(summaries))
+    print(experiment.format_summaries(summaries))
     return {s.feedback: s for s in summaries}, cases
 
 

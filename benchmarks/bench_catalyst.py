@@ -1,6 +1,6 @@
 """How fast the catalyst's dual EKF steps, against its real-time budget; and the plant.
 
-Run: ``.venv/bin/python benchmarks/bench_twc.py [SECONDS]``
+Run: ``.venv/bin/python benchmarks/bench_catalyst.py [SECONDS]``
 
 Issue 8's goal: the observer (``twc``, seed 000's dual EKF) at >= 200 x real time on one
 core. Its real-time budget is its tick period: at MED (10 Hz) one step must take less

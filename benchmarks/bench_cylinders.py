@@ -1,6 +1,6 @@
 """Seed 001's observers against the real-time budget of a 6 deg stream at 6000 rpm.
 
-Run: ``.venv/bin/python benchmarks/bench_periodic.py [SECONDS]``
+Run: ``.venv/bin/python benchmarks/bench_cylinders.py [SECONDS]``
 
 At 6000 rpm a crank-angle stream brings 6000 samples/s (one every 6 deg), so real time allows
 1/6000 s = 167 µs per sample for each observer. Goal: >= 20x real time on one core, i.e.

@@ -1,6 +1,6 @@
 """Step cost of seed 002's air-path observers (default and augmented EKF) against real time.
 
-Run: ``.venv/bin/python benchmarks/bench_bias.py [SECONDS]``
+Run: ``.venv/bin/python benchmarks/bench_diesel_airpath.py [SECONDS]``
 
 Issue 11's goal: each observer stepped at 100 Hz runs at >= 100x real time on one core.
 The inputs are those of the large diesel on the ``etc`` cycle (the first SECONDS, default

@@ -1,6 +1,6 @@
 """The air-path observer's step cost at 100 Hz, against real time.
 
-Run: ``.venv/bin/python benchmarks/bench_airpath.py [SECONDS]``
+Run: ``.venv/bin/python benchmarks/bench_si_airpath.py [SECONDS]``
 
 Issue 10's goal: seed 003's constant-gain EKF (augmented, feedback P_IC and P_IM) steps at
 >= 100 x real time on one core at a 100 Hz tick. The reference is the real-time budget of a

@@ -17,6 +17,7 @@ from __future__ import annotations
 import sys
 import time
 
+from cell import app
 from cell.bus.dbc import load
 from cell.estimators.backpressure import native_filters
 from cell.sim import simulate
@@ -27,6 +28,7 @@ BUS_LIMIT_FPS = 500_000 / 138
 
 
 def main(seconds: float = 600.0) -> dict[str, float]:
+    app.load()  # the engine profiles and block sets, as the command line registers them
     db = load()
     frames = list(simulate(db, "transient", seed=0, duration=seconds))
     rt = Runtime(db, native_filters())

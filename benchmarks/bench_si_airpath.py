@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from cell import app
 from cell.estimators.si_airpath import AirPathObserver
 from cell.experiments.si_airpath import simulate
 
@@ -24,6 +25,7 @@ TICK = 0.01  # s, 100 Hz
 
 
 def main(seconds: float = 104.0) -> None:
+    app.load()  # the engine profiles and block sets, as the command line registers them
     from cell.plant.si_engine import throttle_steps_cycle
 
     cycle = throttle_steps_cycle(seconds / 13.0)

@@ -329,6 +329,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="rewrite the Markdown from the last run's raw numbers (BENCHMARKS.json)")
     p.add_argument("--flood", nargs=3, metavar=("BUS", "RATE", "SECONDS"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    from cell import app
+
+    app.load()  # the engine profiles and block sets, as the command line registers them
     if args.flood:
         flood(args.flood[0], float(args.flood[1]), float(args.flood[2]))
         return 0

@@ -113,6 +113,9 @@ def engine_profile(name: str) -> EngineProfile:
     try:
         return ENGINES[name]
     except KeyError:
+        if not ENGINES:
+            raise ConfigError(f"--engine {name!r}: no engine profile is registered; the "
+                              "composition root registers them (cell.app.load())") from None
         raise ConfigError(f"--engine {name!r} is not an engine profile; choose one of: "
                           f"{', '.join(ENGINES)}") from None
 

@@ -86,3 +86,12 @@ def test_cli_refuses_an_unknown_environment_setting(tmp_path):
     assert r.returncode == 2
     assert "TESTCELL_BP_LIMT" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "x.log").exists()
+
+
+def test_an_engine_asked_of_an_empty_registry_says_who_registers(monkeypatch):
+    """Library code below the composition root gets a clear word, not an empty list."""
+    from cell.core import registry
+
+    monkeypatch.setattr(registry, "ENGINES", {})
+    with pytest.raises(ConfigError, match=r"no engine profile is registered.*cell\.app\.load"):
+        registry.engine_profile("large-diesel")

@@ -300,8 +300,9 @@ def test_played_log_through_live_runtime_agrees_with_replay(recorded, tmp_path):
     logger = None
     try:
         logger = CanLogger(cap)
-        subprocess.run([PY, "-m", "can.player", "-i", "udp_multicast", "-c", GROUP, "--bus-kwargs",
-                        f"port={GROUP_PORT}", str(inject)],
+        # --bus-kwargs takes every word up to the next option; the log file ends the options
+        subprocess.run([PY, "-m", "can.player", "-i", "udp_multicast", "--bus-kwargs",
+                        f"port={GROUP_PORT}", "-c", GROUP, str(inject)],
                        check=True, timeout=120, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         time.sleep(1.0)
         logger.stop()

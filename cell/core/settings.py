@@ -57,22 +57,22 @@ SIM_OPTIONS: tuple[Option, ...] = (
 )
 
 
+def _own_options(parts) -> dict[str, tuple[Option, list[str]]]:
+    out: dict[str, tuple[Option, list[str]]] = {}
+    for part in parts:
+        for opt in part.options:
+            out.setdefault(opt.key, (opt, []))[1].append(part.name)
+    return out
+
+
 def engine_options() -> dict[str, tuple[Option, list[str]]]:
     """Every registered engine's own options by key: the option and the engines taking it."""
-    out: dict[str, tuple[Option, list[str]]] = {}
-    for profile in registry.ENGINES.values():
-        for opt in profile.options:
-            out.setdefault(opt.key, (opt, []))[1].append(profile.name)
-    return out
+    return _own_options(registry.ENGINES.values())
 
 
 def block_options() -> dict[str, tuple[Option, list[str]]]:
     """Every registered block set's own options by key: the option and the sets taking it."""
-    out: dict[str, tuple[Option, list[str]]] = {}
-    for block_set in registry.BLOCK_SETS.values():
-        for opt in block_set.options:
-            out.setdefault(opt.key, (opt, []))[1].append(block_set.name)
-    return out
+    return _own_options(registry.BLOCK_SETS.values())
 
 
 def add_block_options(parser: argparse.ArgumentParser) -> None:

@@ -155,6 +155,11 @@ class Runtime:
         self._pending: dict[tuple[int, bool], tuple[Any, float, bytes]] = {}
         self.blocks: dict[str, Block] = {}
         self.producer: dict[str, str] = {}
+        #: the DBC messages all of whose signals some block produces; found again only when
+        #: the blocks change (``None``), not at every tick
+        self._out_messages: list | None = None
+        #: frame key -> (DBC message, its length): the decode's lookup, once per frame
+        self._known = {key: (m, m.length) for key, m in self.db.by_id.items()}
         self.outbox: list[can.Message] = []
         self.tick_listeners: list[Callable[[float], None]] = []
         #: small state kept for the service between requests (trip onset, reset counter)
@@ -192,6 +197,7 @@ class Runtime:
             self.blocks[block.name] = block
             for layout in layouts:
                 self._stream_route(layout).blocks.append(block)
+            self._out_messages = None
             for out in block.outputs:
                 self.producer[out] = block.name
                 # DBC, declared, else its one input's
@@ -209,6 +215,7 @@ class Runtime:
                 route.blocks = [b for b in route.blocks if b is not block]
                 if not route.blocks:
                     del self._streams[key]
+            self._out_messages = None
             for out in block.outputs:
                 self.producer.pop(out, None)
                 self.store.drop(out)
@@ -285,7 +292,7 @@ class Runtime:
     def ingest_many(self, msgs: Iterable[can.Message]) -> int:
         """Apply frames in order (the offline replay's fast path); returns how many."""
         n = 0
-        by_id = self.db.by_id
+        known = self._known
         pending = self._pending
         streams = self._streams
         counters = self.counters
@@ -293,13 +300,16 @@ class Runtime:
         by_id_count = counters.frames_by_id
         max_ids = counters.max_counted_ids
         with self.lock:
+            nxt = self._next_due
+            last = self.last_frame_time
             try:
                 for msg in msgs:
                     n += 1
                     ts = float(msg.timestamp)
-                    nxt = self._next_due
                     if nxt is None or ts > nxt + _EPS:
+                        self.last_frame_time = last  # what a tick listener sees as now
                         self._run_ticks(ts, inclusive=False)
+                        nxt = self._next_due
                     frame_times.append(ts)
                     key = (msg.arbitration_id, bool(msg.is_extended_id))
                     seen = by_id_count.get(key)
@@ -307,22 +317,22 @@ class Runtime:
                         by_id_count[OTHER_IDS] = by_id_count.get(OTHER_IDS, 0) + 1  # a bus of random IDs
                     else:
                         by_id_count[key] = (seen or 0) + 1
-                    last = self.last_frame_time
                     if last is None or ts >= last:
-                        self.last_frame_time = ts
+                        last = ts
                     else:
                         counters.late_frames += 1
                     if msg.is_error_frame or msg.is_remote_frame:
                         counters.count_decode_error("error_frame" if msg.is_error_frame
                                                     else "remote_frame")
                         continue
-                    message = by_id.get(key)
-                    if message is None or len(msg.data) != message.length:
+                    entry = known.get(key)
+                    if entry is None or len(msg.data) != entry[1]:
                         try:
                             self.db.check(msg)  # the one place that words the error
                         except FrameDecodeError as exc:
                             counters.count_decode_error(exc.kind, key)
                         continue
+                    message = entry[0]
                     if streams:
                         route = streams.get(key)
                         if route is not None:
@@ -332,6 +342,7 @@ class Runtime:
                         pending[key] = (message, ts, msg.data)
             finally:  # frames applied before a bad log line still count
                 counters.frames += n
+                self.last_frame_time = last
         return n
 
     def _flush(self) -> None:
@@ -456,7 +467,9 @@ class Runtime:
     def _emit(self, updated: set[str], t: float) -> None:
         """Queue a DBC frame for each output message that carries an updated signal."""
         chans = self.store.by_name
-        for message in self.db.messages_carrying(set(self.producer)):
+        if self._out_messages is None:
+            self._out_messages = self.db.messages_carrying(set(self.producer))
+        for message in self._out_messages:
             names = [s.name for s in message.signals]
             if not updated.intersection(names):
                 continue

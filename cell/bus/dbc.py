@@ -16,6 +16,7 @@ from pathlib import Path
 
 import can
 import cantools
+from cantools.database import EncodeError
 from cantools.database.can import Database, Message
 
 from cell.core.errors import ConfigError
@@ -264,17 +265,22 @@ class CellDatabase:
             raise ConfigError(f"message {name!r} is not in {self._names()}") from None
 
     def encode(self, message_name: str, values: dict[str, float], timestamp: float = 0.0) -> can.Message:
-        """Encode physical values into a frame, clamping each to its DBC range."""
+        """Encode physical values into a frame, clamping each to its DBC range; a NaN is
+        refused (:class:`cantools.database.EncodeError`), as it has no place in a frame."""
         message = self.message(message_name)
         clamped = {}
         for s in message.signals:
             v = float(values[s.name])
+            if v != v:
+                raise EncodeError(f"{message.name}: signal {s.name} is NaN")
             if s.minimum is not None:
                 v = max(v, float(s.minimum))
             if s.maximum is not None:
                 v = min(v, float(s.maximum))
             clamped[s.name] = v
-        data = message.encode(clamped, scaling=True, strict=True)
+        # every value is clamped into its DBC range above, so the strict range check of
+        # cantools would only repeat it
+        data = message.encode(clamped, scaling=True, strict=False)
         return can.Message(
             timestamp=timestamp,
             arbitration_id=message.frame_id,

@@ -52,11 +52,16 @@ def feed(runtime: Runtime, frames: Iterable[can.Message], on_tick: TickListener 
     fed = Fed()
 
     def counted() -> Iterator[can.Message]:
-        for msg in frames:
-            ts = msg.timestamp
-            fed.last_time = ts if fed.last_time is None else max(fed.last_time, ts)
-            fed.frames += 1
-            yield msg
+        last = None
+        try:
+            for msg in frames:
+                ts = msg.timestamp
+                if last is None or ts > last:
+                    last = ts
+                fed.frames += 1
+                yield msg
+        finally:
+            fed.last_time = last
 
     with Listening(runtime, on_tick):
         try:

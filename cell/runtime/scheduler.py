@@ -158,6 +158,7 @@ class Runtime:
         #: the DBC messages all of whose signals some block produces; found again only when
         #: the blocks change (``None``), not at every tick
         self._out_messages: list | None = None
+        self._busy_rates: frozenset[str] | None = None
         #: frame key -> (DBC message, its length): the decode's lookup, once per frame
         self._known = {key: (m, m.length) for key, m in self.db.by_id.items()}
         self.outbox: list[can.Message] = []
@@ -197,7 +198,7 @@ class Runtime:
             self.blocks[block.name] = block
             for layout in layouts:
                 self._stream_route(layout).blocks.append(block)
-            self._out_messages = None
+            self._out_messages = self._busy_rates = None
             for out in block.outputs:
                 self.producer[out] = block.name
                 # DBC, declared, else its one input's
@@ -215,7 +216,7 @@ class Runtime:
                 route.blocks = [b for b in route.blocks if b is not block]
                 if not route.blocks:
                     del self._streams[key]
-            self._out_messages = None
+            self._out_messages = self._busy_rates = None
             for out in block.outputs:
                 self.producer.pop(out, None)
                 self.store.drop(out)
@@ -381,10 +382,12 @@ class Runtime:
             self._next_index = {
                 r: math.ceil(until * getattr(self.rates, r) - _EPS) for r in RATE_NAMES
             }
+        index = self._next_index
+        hz = [(r, getattr(self.rates, r)) for r in RATE_NAMES]
         while True:
             due = []
-            for r in RATE_NAMES:
-                t = self._next_index[r] / getattr(self.rates, r)
+            for r, f in hz:
+                t = index[r] / f
                 if t < until - _EPS or (inclusive and t <= until + _EPS):
                     due.append((t, r))
             if not due:
@@ -392,8 +395,11 @@ class Runtime:
             t = min(d[0] for d in due)
             ticking = frozenset(r for (tt, r) in due if abs(tt - t) <= _EPS)
             for r in ticking:
-                self._next_index[r] += 1
-            work = "MED" in ticking or any(not ticking.isdisjoint(b.rates) for b in self.blocks.values())
+                index[r] += 1
+            busy = self._busy_rates
+            if busy is None:  # the tasks some block ticks at; found again when the blocks change
+                busy = self._busy_rates = frozenset(r for b in self.blocks.values() for r in b.rates)
+            work = "MED" in ticking or not ticking.isdisjoint(busy)
             if work:
                 started = time.perf_counter()
                 self._flush()  # a FAS tick with no FAS block reads nothing: skip the decode
@@ -403,7 +409,7 @@ class Runtime:
                 self._after_med_tick(t)
             if work:
                 self._count_tick(time.perf_counter() - started, ticking)
-        self._next_due = min(self._next_index[r] / getattr(self.rates, r) for r in RATE_NAMES)
+        self._next_due = min(index[r] / f for r, f in hz)
 
     def _count_tick(self, seconds: float, ticking: frozenset[str]) -> None:
         """Count a tick that had work, and an overrun when the work took longer than the

@@ -82,7 +82,7 @@ class ChannelStore:
         """Take every channel's value and status at the MED tick ``t`` into the history."""
         rows = []
         for ch in self.by_name.values():
-            status, _ = ch.status_at(t)
+            status = ch.status_at(t)[0]
             rows.append((ch.name, ch.value if status == OK else None, status))
         self._history.record(t, rows)
 

@@ -239,3 +239,13 @@ def test_cantools_dump_works_on_each_file(path):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert "Messages" in r.stdout
+
+
+def test_encode_clamps_to_the_dbc_range_and_refuses_nan(db):
+    from cantools.database import EncodeError
+
+    msg = db.encode("EXH_BP", {"EXH_BP_L": -1e9, "EXH_BP_R": 1e9})
+    sig = {s.name: s for s in db.message("EXH_BP").signals}
+    assert db.decode(msg)[1] == {"EXH_BP_L": sig["EXH_BP_L"].minimum, "EXH_BP_R": sig["EXH_BP_R"].maximum}
+    with pytest.raises(EncodeError, match="EXH_BP_L is NaN"):
+        db.encode("EXH_BP", {"EXH_BP_L": float("nan"), "EXH_BP_R": 600.0})

@@ -7,7 +7,7 @@ the ticks due at the last frame's time. The closed loop with a simulator is
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import can
@@ -50,24 +50,14 @@ def feed(runtime: Runtime, frames: Iterable[can.Message], on_tick: TickListener 
     the ticks up to the last good frame still run, and the error is returned in the result.
     """
     fed = Fed()
-
-    def counted() -> Iterator[can.Message]:
-        last = None
-        try:
-            for msg in frames:
-                ts = msg.timestamp
-                if last is None or ts > last:
-                    last = ts
-                fed.frames += 1
-                yield msg
-        finally:
-            fed.last_time = last
-
+    before = runtime.counters.frames
     with Listening(runtime, on_tick):
         try:
-            runtime.ingest_many(counted())
+            runtime.ingest_many(frames)
         except LogFormatError as exc:
             fed.error = exc
-        if fed.last_time is not None:
+        fed.frames = runtime.counters.frames - before  # counted as applied, a bad line or not
+        if fed.frames:
+            fed.last_time = runtime.last_frame_time
             runtime.advance(fed.last_time)
     return fed

@@ -306,13 +306,13 @@ class Runtime:
             try:
                 for msg in msgs:
                     n += 1
-                    ts = float(msg.timestamp)
+                    ts = msg.timestamp
                     if nxt is None or ts > nxt + _EPS:
                         self.last_frame_time = last  # what a tick listener sees as now
                         self._run_ticks(ts, inclusive=False)
                         nxt = self._next_due
                     frame_times.append(ts)
-                    key = (msg.arbitration_id, bool(msg.is_extended_id))
+                    key = (msg.arbitration_id, msg.is_extended_id)  # True == 1: one key either way
                     seen = by_id_count.get(key)
                     if seen is None and len(by_id_count) >= max_ids:
                         by_id_count[OTHER_IDS] = by_id_count.get(OTHER_IDS, 0) + 1  # a bus of random IDs

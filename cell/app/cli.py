@@ -19,6 +19,7 @@ from cell.core.settings import LOG_LEVELS, Settings, add_block_options
 
 log = logging.getLogger("testcell")
 
+
 # -- replay ------------------------------------------------------------------------------
 def cmd_replay(settings: Settings, args: argparse.Namespace) -> int:
     from cell.runtime.replay import replay

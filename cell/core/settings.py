@@ -13,7 +13,9 @@ line wins. An unknown ``TESTCELL_*`` variable, or an unknown key given to
 Simulator options are declared once, as :class:`Option` (the common ones in
 :data:`SIM_OPTIONS`, an engine's own in its :class:`~cell.core.registry.EngineProfile`), so
 ``testcell sim`` and ``testcell up`` offer the same flags, and ``up`` hands the simulator
-process every one of them (:meth:`Settings.sim_argv`).
+process every one of them (:meth:`Settings.sim_argv`). A block set's own options
+(:class:`~cell.core.registry.BlockSet`) are read the same way into :attr:`Settings.blocks`.
+The option tables are the registry's; what fills them is the composition root's business.
 """
 
 from __future__ import annotations

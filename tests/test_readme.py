@@ -86,3 +86,14 @@ def test_every_testcell_command_in_the_readme_parses():
             parser.parse_args(argv)
         except SystemExit as exc:
             raise AssertionError(f"README command does not parse: {cmd}") from exc
+
+
+def test_the_architecture_and_extending_docs_exist_and_name_real_paths():
+    import re
+
+    for name in ("architecture.md", "extending.md"):
+        text = (ROOT / "docs" / name).read_text()
+        assert f"docs/{name}" in README  # the README's layout section points to both
+        paths = set(re.findall(r"`((?:cell|service|tests|benchmarks|scripts|docs|dbc)/[\w./-]+)`", text))
+        missing = sorted(p for p in paths if not (ROOT / p.rstrip("/")).exists())
+        assert paths and missing == [], (name, missing)

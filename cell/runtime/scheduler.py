@@ -159,6 +159,8 @@ class Runtime:
         #: the blocks change (``None``), not at every tick
         self._out_messages: list | None = None
         self._busy_rates: frozenset[str] | None = None
+        #: (task, Hz) of the three tasks, for the tick arithmetic
+        self._hz = tuple((r, getattr(self.rates, r)) for r in RATE_NAMES)
         #: frame key -> (DBC message, its length): the decode's lookup, once per frame
         self._known = {key: (m, m.length) for key, m in self.db.by_id.items()}
         self.outbox: list[can.Message] = []
@@ -382,8 +384,7 @@ class Runtime:
             self._next_index = {
                 r: math.ceil(until * getattr(self.rates, r) - _EPS) for r in RATE_NAMES
             }
-        index = self._next_index
-        hz = [(r, getattr(self.rates, r)) for r in RATE_NAMES]
+        index, hz = self._next_index, self._hz
         while True:
             due = []
             for r, f in hz:

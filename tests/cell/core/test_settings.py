@@ -3,6 +3,7 @@ and every simulator option handed from ``up`` to the simulator process."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -10,6 +11,7 @@ import pytest
 
 from cell.app import cli
 from service import up
+from tests.helpers.buses import private_bus
 from cell import sim
 from cell.core.errors import ConfigError
 from cell.core.settings import Settings
@@ -67,14 +69,14 @@ def test_up_hands_the_simulator_every_simulator_option(monkeypatch):
             "--duty", "transient", "--duration", "60"]
     args = cli.build_parser().parse_args(argv)
     settings = Settings.from_args(args, environ={}).for_simulator()
-    up._start_sim_process(settings, "udp_multicast:239.74.163.2")
+    up._start_sim_process(settings, private_bus())  # argv only: no bus is opened
     cmd = started[0]
     assert cmd[:3] == [sys.executable, "-m", "cell"] and "sim" in cmd
     child = cli.build_parser().parse_args(cmd[3:])
     got = Settings.from_args(child, environ={})
     for key in ("engine", "duty", "seed", "speed", "duration", "plant"):
         assert getattr(got, key) == getattr(settings, key), key
-    assert got.bus == "udp_multicast:239.74.163.2"
+    assert got.bus == private_bus()
     banks = sim.build(got).plant.plant("exhaust")
     assert banks.bp_limit == 900.0 and banks.valves["L"].position == 35.0
 
@@ -95,3 +97,20 @@ def test_an_engine_asked_of_an_empty_registry_says_who_registers(monkeypatch):
     monkeypatch.setattr(registry, "ENGINES", {})
     with pytest.raises(ConfigError, match=r"no engine profile is registered.*cell\.app\.load"):
         registry.engine_profile("large-diesel")
+
+
+@pytest.mark.parametrize("argv,env,needle", [
+    (["replay", "x.log", "--out", "x.csv", "--bias-design", "/no/such/design.json"], {},
+     "bias design /no/such/design.json: no such file"),
+    (["replay", "x.log", "--out", "x.csv"], {"TESTCELL_NO_CONTROLLERS": "maybe"},
+     "TESTCELL_NO_CONTROLLERS='maybe': not a yes/no value"),
+    (["replay", "x.log", "--out", "x.csv", "--osc-init", "abc"], {}, "--osc-init: invalid float"),
+    (["replay", "x.log", "--out", "x.csv", "--osc-init", "9"], {}, "--osc-init must be in (0.05, 4]"),
+])
+def test_a_block_sets_own_option_refuses_bad_values_by_name(argv, env, needle, tmp_path):
+    """Bad values of the block sets' options stop before any work, naming the option."""
+    environ = {k: v for k, v in os.environ.items() if not k.startswith("TESTCELL_")}
+    r = subprocess.run([sys.executable, "-m", "cell", *argv], capture_output=True, text=True,
+                       env={**environ, **env}, cwd=tmp_path, timeout=120)
+    assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert not (tmp_path / "x.csv").exists()

@@ -22,12 +22,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import can
+import numpy as np
 
 from cell.runtime import units
 from cell.runtime.blocks import RATE_NAMES, Block
 from cell.runtime.channels import INVALID, OK, STALE, Channel
 from cell.bus.dbc import CellDatabase, FrameDecodeError
 from cell.core.errors import ConfigError, UnknownBlockError
+from cell.runtime.faults import BlockFaults, describe
 from cell.runtime.health import (FRAME_ERROR_KINDS, MAX_COUNTED_IDS, MAX_UNKNOWN_IDS, OTHER_IDS,
                                  HealthCounters)
 from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_streams
@@ -81,6 +83,21 @@ class _SampleRoute:
         self.layout = layout
         self.tracker = SampleTracker(layout, window=window)
         self.blocks: list[Block] = []
+
+
+def _checked(block: Block, outputs: Any, chans: dict[str, Channel]) -> dict[str, float]:
+    """A block's step result as ``{output: float}``; a result that is not a mapping of its own
+    outputs to real numbers (a complex number, an undeclared output) raises, which faults the
+    block (:mod:`cell.runtime.faults`) before any channel changes."""
+    out: dict[str, float] = {}
+    for name, value in outputs.items():
+        if name not in block.outputs or name not in chans:
+            raise KeyError(f"{block.name} returned {name!r}, which is not one of its outputs")
+        if isinstance(value, complex) or not isinstance(value, (int, float, np.floating, np.integer)):
+            raise TypeError(f"{block.name} returned {type(value).__name__} {value!r} for {name}; "
+                            "outputs are real numbers")
+        out[name] = float(value)
+    return out
 
 
 def _counted(name: str, doc: str) -> property:
@@ -149,6 +166,8 @@ class Runtime:
         # an input goes stale by the third MED tick after its frames stop
         self.store = ChannelStore(db, self.history_len, stale_floor=1.5 / self.rates.MED)
         self.counters = HealthCounters()
+        #: every block's faults and backoff (:mod:`cell.runtime.faults`)
+        self.faults = BlockFaults()
         #: newest undecoded frame per message: frames are decoded when a tick or a reader
         #: needs their values, so the ten frames of a 100 Hz message between two 10 Hz
         #: ticks cost one decode, not ten
@@ -214,6 +233,7 @@ class Runtime:
             block = self.block(name)
             del self.blocks[name]
             self.counters.forget_block(name)
+            self.faults.forget(name)
             for key, route in list(self._streams.items()):
                 route.blocks = [b for b in route.blocks if b is not block]
                 if not route.blocks:
@@ -252,16 +272,22 @@ class Runtime:
             return
         index, samples = route.layout.unpack(values)
         name = route.layout.name
-        block_errors = self.counters.block_errors
+        faults = self.faults
         for event in route.tracker.push(index, samples, ts):
             for block in route.blocks:
+                if faults.by_block and faults.waiting(block.name, ts) is not None:
+                    continue  # backing off after a fault: its samples wait for the retry
                 try:
                     if event[0] == "samples":
                         block.samples(name, event[1], event[2], event[3])
                     else:
                         block.gap(name, event[1], event[2], event[3])
-                except ArithmeticError:
-                    block_errors[block.name] += 1
+                except ArithmeticError as exc:
+                    self.counters.block_errors[block.name] += 1
+                    faults.count(block.name, "refused", describe(exc), ts)
+                except Exception as exc:  # any defect of one block faults that block alone
+                    self.counters.block_errors[block.name] += 1
+                    faults.exception(block, exc, ts)
 
     def block(self, name: str, family: str | None = None) -> Block:
         block = self.blocks.get(name)
@@ -428,9 +454,16 @@ class Runtime:
         chans = self.store.by_name
         counters = self.counters
         block_errors, withheld = counters.block_errors, counters.withheld
+        faults = self.faults
         for block in list(self.blocks.values()):
             if ticking.isdisjoint(block.rates):
                 continue
+            if faults.by_block:
+                waiting = faults.waiting(block.name, t)
+                if waiting is not None:  # backing off after a fault: not stepped
+                    for out in block.outputs:
+                        chans[out].mark(INVALID, waiting)
+                    continue
             values: dict[str, float] = {}
             bad: tuple[str, str] | None = None
             for name in block.inputs:
@@ -449,22 +482,33 @@ class Runtime:
                 continue
             started = time.perf_counter()
             try:
-                outputs = block.step(t, values, ticking)
-            except ArithmeticError as exc:
+                outputs = _checked(block, block.step(t, values, ticking), chans)
+            except ArithmeticError as exc:  # the block's own "cannot compute this tick"
                 block_errors[block.name] += 1
+                reason = describe(exc)
+                faults.count(block.name, "refused", reason, t)
                 for out in block.outputs:
-                    chans[out].mark(INVALID, f"{type(exc).__name__}: {exc}")
+                    chans[out].mark(INVALID, reason)
+                continue
+            except Exception as exc:  # any other defect faults this block alone
+                block_errors[block.name] += 1
+                reason = faults.exception(block, exc, t)
+                for out in block.outputs:
+                    chans[out].mark(INVALID, reason)
                 continue
             finally:
                 counters.count_step(block.name, time.perf_counter() - started)
+            if faults.by_block:
+                faults.stepped(block.name)
             reasons = block.errors
             for out, value in outputs.items():
                 ch = chans[out]
-                ch.update(float(value), t)
+                ch.update(value, t)
                 if ch.status != OK:
                     block_errors[block.name] += 1
                     if not math.isfinite(ch.value):
                         withheld[out] += 1  # _emit keeps it off the bus
+                        faults.count(block.name, "nonfinite", f"{out} is {ch.value}", t)
                     if out in reasons:
                         ch.mark(INVALID, reasons[out])
                 updated.add(out)

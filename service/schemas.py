@@ -36,8 +36,28 @@ class TripOut(BaseModel):
     since: float | None
 
 
+class LoopOut(BaseModel):
+    """The live loop: running, its problem now, restarts, stalls, lag, dropped stale outputs
+    and the kernel's drop count of the bus socket (``None``: not reported by this bus)."""
+
+    running: bool
+    problem: str | None
+    restarts: int
+    last_error: str | None
+    stalls: int = Field(description="passes of the loop that came more than stall_limit_s late")
+    last_stall_s: float | None
+    last_stall_end: float | None = Field(description="wall clock (Unix time) the last stall ended")
+    lag_s: float | None = Field(description="seconds the runtime's bus time is behind the wall "
+                                            "clock's estimate of it")
+    dropped_stale: int = Field(description="output frames not sent for being more than one cycle "
+                                           "older than the bus time (after a stall)")
+    kernel_drops: int | None = Field(description="datagrams the kernel dropped on the bus socket; "
+                                                 "null: not available on this bus or platform")
+    stall_limit_s: float
+
+
 class HealthOut(BaseModel):
-    status: Literal["ok", "waiting", "degraded"]
+    status: Literal["ok", "waiting", "degraded", "failed"]
     reasons: list[str]
     trip: TripOut | None
     bus: str
@@ -53,6 +73,21 @@ class HealthOut(BaseModel):
     last_frame_time: float | None
     bus_time: float | None
     runtime_running: bool
+    tick_overruns_per_min: int = Field(0, description="tick overruns over the last minute of bus time")
+    block_faults: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="per block that has faulted: faults by kind (refused, exception, nonfinite), "
+                    "the last reason, kind and bus time, the streak of exceptions, whether it is "
+                    "backing off, its retry time and backoff, and its resets")
+    frames_lost: dict[str, Any] = Field(
+        default_factory=dict,
+        description="missed cycles of cyclic messages (in all, over the last minute, by message) "
+                    "and outages (gaps over 1 s) by message")
+    listener_errors: dict[str, int] = Field(default_factory=dict)
+    encode_errors: dict[str, int] = Field(default_factory=dict)
+    loop: LoopOut | None = Field(None, description="the live loop (null: an offline cell)")
+    limits: dict[str, float] = Field(default_factory=dict,
+                                     description="thresholds past which the status is degraded")
     streams: dict[str, dict[str, Any]] = Field(
         default_factory=dict,
         description="per crank-angle sample stream consumed by a block: frames, samples, "

@@ -166,6 +166,7 @@ class StreamHub:
         self.closed = False
         self._lock = threading.Lock()
         cell.on_tick(self.on_tick)
+        cell.on_stall(self.on_tick)  # a stopped or stalled loop: every channel stale, at once
 
     # -- the runtime's side -----------------------------------------------------------
     def on_tick(self, t: float) -> None:

@@ -22,6 +22,7 @@ from cell.core import registry
 from cell.core.settings import Settings
 from cell.runtime import supervision
 from cell.runtime.blocks import Block
+from cell.runtime.channels import STALE
 from cell.runtime.scheduler import Runtime
 from cell.runtime.store import Reading
 from cell.scripts.manager import ScriptManager
@@ -64,15 +65,29 @@ class Cell:
         return self.runtime.rates.period(task)
 
     # -- channels ---------------------------------------------------------------------
+    def loop_problem(self) -> str | None:
+        """Why the live loop's values cannot be trusted now (stopped, restarting, stalled),
+        else ``None``; while there is one, every channel reads ``stale`` with it."""
+        return self.live.problem() if self.live is not None else None
+
     def snapshot(self) -> list[dict[str, Any]]:
         """Every channel as seen now, by name: value, unit, bus time, status and source."""
-        return self.runtime.snapshot()
+        snaps = self.runtime.snapshot()
+        problem = self.loop_problem()
+        if problem:
+            for snap in snaps:
+                snap["status"], snap["reason"] = STALE, problem
+        return snaps
 
     def channel(self, name: str) -> dict[str, Any]:
         """One channel as seen now; :class:`~cell.core.errors.UnknownBlockError` if none."""
         rt = self.runtime
         with rt.lock:
-            return rt.channel(name).snapshot(rt.now)
+            snap = rt.channel(name).snapshot(rt.now)
+        problem = self.loop_problem()
+        if problem:
+            snap["status"], snap["reason"] = STALE, problem
+        return snap
 
     def channel_names(self) -> list[str]:
         """The name of every channel, sorted."""
@@ -89,7 +104,12 @@ class Cell:
     def history(self, name: str, seconds: float) -> list[tuple[float, float | None, str]]:
         """``(time, value or None, status)`` of a channel at each MED tick of the last
         ``seconds`` of bus time."""
-        return self.runtime.history(name, seconds)
+        points = self.runtime.history(name, seconds)
+        problem = self.loop_problem()
+        now = self.bus_time()
+        if problem and now is not None and (not points or now > points[-1][0]):
+            points.append((now, None, STALE))  # the loop stopped: the channel is stale now
+        return points
 
     def readings(self, names: Iterable[str] | None = None,
                  at: float | None = None) -> tuple[float | None, dict[str, Reading]]:
@@ -98,12 +118,21 @@ class Cell:
         rt = self.runtime
         with rt.lock:
             t = rt.now if at is None else at
-            return t, rt.readings(names, at=t)
+            readings = rt.readings(names, at=t)
+        if self.loop_problem():
+            readings = {n: (v, STALE, vt) for n, (v, _, vt) in readings.items()}
+        return t, readings
 
     def on_tick(self, listener: Callable[[float], None]) -> None:
         """Call ``listener(t)`` after every MED tick, in the runtime's thread, lock held."""
         with self.runtime.lock:
             self.runtime.tick_listeners.append(listener)
+
+    def on_stall(self, listener: Callable[[float], None]) -> None:
+        """Call ``listener(t)`` once per MED period, with the bus time now, while the live
+        loop is stopped, restarting or stalled (no tick comes then); nothing offline."""
+        if self.live is not None:
+            self.live.stall_listeners.append(listener)
 
     # -- blocks -----------------------------------------------------------------------
     def families(self) -> list[dict[str, Any]]:
@@ -184,8 +213,10 @@ class Cell:
         rt = self.runtime
         with rt.lock:
             counts = rt.health()
+            loop = self.live.status() if self.live is not None else None
             return {**supervision.assess(rt, self.live), "bus": self.bus,
-                    "runtime_running": self.live.running if self.live else False, **counts}
+                    "runtime_running": self.live.running if self.live else False, **counts,
+                    "loop": loop, "limits": dict(supervision.LIMITS)}
 
     def frames_by_id(self) -> dict[tuple[int, bool], int]:
         """Frames received so far per ``(arbitration ID, extended)``, known or not."""

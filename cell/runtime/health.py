@@ -30,6 +30,67 @@ MAX_UNKNOWN_IDS = 256
 #: Bus times of the most recent frames kept for the frame rate.
 FRAME_TIMES = 20_000
 
+#: The window of the "per minute" counts (tick overruns, missed cycles), seconds of bus time.
+MINUTE_S = 60.0
+
+#: A message's inter-arrival longer than this (seconds of bus time) is an outage (its sender
+#: stopped, the bus fell silent: its channels turn stale and say so), not missed cycles.
+OUTAGE_S = 1.0
+
+#: Events kept for the per-minute counts (beyond this, the oldest are forgotten).
+EVENT_TIMES = 10_000
+
+
+class CycleGaps:
+    """Frames lost on the way, found from each cyclic message's arrivals.
+
+    Between two looks at a message (the runtime's decode of its newest frame), ``dn`` frames
+    of it arrived over ``dt`` seconds of bus time; a message whose DBC cycle time is ``c``
+    should have brought ``round(dt / c)``, so ``round(dt / c) - dn`` cycles were missed (a
+    single inter-arrival over 1.5 cycles is one missed cycle). Jitter does not add up, a
+    sender faster than its DBC cycle misses nothing, and a gap over :data:`OUTAGE_S` is
+    counted as an outage instead.
+    """
+
+    def __init__(self) -> None:
+        #: frame key -> (bus time of its newest frame seen, frames of it counted then)
+        self.seen: dict[tuple[int, bool], tuple[float, int]] = {}
+        #: missed cycles by message name
+        self.missed: collections.Counter[str] = collections.Counter()
+        #: outages (gaps over OUTAGE_S) by message name
+        self.outages: collections.Counter[str] = collections.Counter()
+        #: (bus time, cycles) of each gap, for the last minute's count
+        self.times: collections.deque[tuple[float, int]] = collections.deque(maxlen=EVENT_TIMES)
+
+    def observe(self, key: tuple[int, bool], name: str, cycle_s: float | None, ts: float,
+                count: int | None) -> None:
+        """The newest frame of message ``name`` is stamped ``ts``; ``count`` of its frames
+        have been received so far."""
+        if count is None or not cycle_s:
+            return
+        prev = self.seen.get(key)
+        if prev is not None and ts <= prev[0]:
+            return  # an older frame than one already seen: nothing to learn
+        self.seen[key] = (ts, count)
+        if prev is None:
+            return
+        dt, dn = ts - prev[0], count - prev[1]
+        if dt > OUTAGE_S:
+            self.outages[name] += 1
+            return
+        missed = round(dt / cycle_s) - dn
+        if missed > 0:
+            self.missed[name] += missed
+            self.times.append((ts, missed))
+
+    def last_minute(self, now: float | None) -> int:
+        if now is None:
+            return 0
+        return sum(n for t, n in self.times if t > now - MINUTE_S)
+
+    def forget(self) -> None:
+        self.seen.clear()
+
 
 class HealthCounters:
     """The frame, error and tick counts of one runtime, and the ``/health`` answer drawn from them.
@@ -66,6 +127,14 @@ class HealthCounters:
         self.tick_seconds_max = 0.0
         #: per block: [wall seconds spent in step, steps]
         self.step_time: dict[str, list[float]] = {}
+        #: bus times of the latest overruns, for the overruns per minute
+        self.overrun_times: collections.deque[float] = collections.deque(maxlen=EVENT_TIMES)
+        #: cycles missed by cyclic messages (:class:`CycleGaps`)
+        self.gaps = CycleGaps()
+        #: MED-tick listeners that raised, by listener (the tick goes on)
+        self.listener_errors: collections.Counter[str] = collections.Counter()
+        #: output frames that could not be encoded, by message (they stay off the bus)
+        self.encode_errors: collections.Counter[str] = collections.Counter()
 
     # -- counting -------------------------------------------------------------------
     def count_decode_error(self, kind: str, key: tuple[int, bool] | None = None) -> None:
@@ -82,9 +151,17 @@ class HealthCounters:
         if seconds > self.tick_seconds_max:
             self.tick_seconds_max = seconds
 
-    def count_overrun(self) -> None:
-        """Count a tick whose work took longer than its period."""
+    def count_overrun(self, t: float | None = None) -> None:
+        """Count a tick (at bus time ``t``) whose work took longer than its period."""
         self.tick_overruns += 1
+        if t is not None:
+            self.overrun_times.append(t)
+
+    def overruns_per_minute(self, now: float | None) -> int:
+        """Tick overruns over the last minute of bus time before ``now``."""
+        if now is None:
+            return 0
+        return sum(1 for t in self.overrun_times if t > now - MINUTE_S)
 
     def count_step(self, block: str, seconds: float) -> None:
         """Add one step of ``block`` that took ``seconds`` of wall time."""
@@ -117,7 +194,8 @@ class HealthCounters:
                 for (i, ext), n in self.unknown_ids.most_common(top)}
 
     def report(self, now: float | None, last_frame_time: float | None,
-               streams: dict[str, dict[str, Any]]) -> dict[str, Any]:
+               streams: dict[str, dict[str, Any]],
+               block_faults: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
         """The runtime's part of ``/health``, at bus time ``now``, with the sample streams'
         order and loss counts."""
         return {
@@ -127,12 +205,21 @@ class HealthCounters:
             "late_frames": self.late_frames,
             "unknown_ids": self.unknown_id_counts(),
             "block_errors": dict(self.block_errors),
+            "block_faults": block_faults or {},
             "streams": streams,
             "withheld": dict(self.withheld),
             "tick_overruns": self.tick_overruns,
+            "tick_overruns_per_min": self.overruns_per_minute(now),
+            "frames_lost": {"missed_cycles": sum(self.gaps.missed.values()),
+                            "missed_cycles_last_min": self.gaps.last_minute(now),
+                            "by_message": dict(self.gaps.missed),
+                            "outages": dict(self.gaps.outages)},
+            "listener_errors": dict(self.listener_errors),
+            "encode_errors": dict(self.encode_errors),
             "last_frame_time": last_frame_time,
             "bus_time": now,
         }
 
 
-__all__ = ["FRAME_ERROR_KINDS", "MAX_COUNTED_IDS", "MAX_UNKNOWN_IDS", "OTHER_IDS", "HealthCounters"]
+__all__ = ["FRAME_ERROR_KINDS", "MAX_COUNTED_IDS", "MAX_UNKNOWN_IDS", "MINUTE_S", "OTHER_IDS", "OUTAGE_S",
+           "CycleGaps", "HealthCounters"]

@@ -14,6 +14,7 @@ frames, overruns, the ``/health`` answer).
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -36,6 +37,8 @@ from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_stream
 from cell.runtime.store import ChannelStore, Reading
 
 _EPS = 1e-9
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -378,10 +381,13 @@ class Runtime:
         """Decode the newest pending frame of each message into its channels."""
         if not self._pending:
             return
-        pending = list(self._pending.values())
+        pending = list(self._pending.items())
         self._pending.clear()  # in place: ingest_many holds a reference to this dict
         chans = self.store.by_name
-        for message, ts, data in pending:
+        gaps, counts = self.counters.gaps, self.counters.frames_by_id
+        for key, (message, ts, data) in pending:
+            gaps.observe(key, message.name, message.cycle_time and message.cycle_time / 1000.0,
+                         ts, counts.get(key))
             try:
                 values = self.db.decode_payload(message, bytes(data))
             except FrameDecodeError as exc:
@@ -447,7 +453,7 @@ class Runtime:
             return  # shorter than every period (the common case): no overrun, nothing to scan
         working = [r for r in ticking if r == "MED" or any(r in b.rates for b in self.blocks.values())]
         if working and seconds > min(rates.period(r) for r in working):
-            self.counters.count_overrun()
+            self.counters.count_overrun(self.last_tick_time)
 
     def _tick(self, ticking: frozenset[str], t: float) -> None:
         updated: set[str] = set()
@@ -529,12 +535,25 @@ class Runtime:
             picked = [chans[n] for n in names]
             if any(c.status != OK or c.value is None for c in picked):
                 continue  # a stale or invalid output is not put on the bus
-            self.outbox.append(self.db.encode(message.name, {c.name: c.value for c in picked}, t))
+            try:
+                frame = self.db.encode(message.name, {c.name: c.value for c in picked}, t)
+            except Exception as exc:  # kept off the bus and counted; the tick goes on
+                self.counters.encode_errors[message.name] += 1
+                if self.counters.encode_errors[message.name] in (1, 10, 100):
+                    log.warning("cannot encode %s at bus time %.3f: %s", message.name, t, describe(exc))
+                continue
+            self.outbox.append(frame)
 
     def _after_med_tick(self, t: float) -> None:
         self.store.record(t)
         for listener in self.tick_listeners:
-            listener(t)
+            try:
+                listener(t)
+            except Exception as exc:  # a listener's defect never ends the loop
+                name = getattr(listener, "__qualname__", type(listener).__name__)
+                self.counters.listener_errors[name] += 1
+                if self.counters.listener_errors[name] in (1, 10, 100):
+                    log.warning("tick listener %s failed at bus time %.3f: %s", name, t, describe(exc))
 
     def send(self, frames: Iterable[can.Message]) -> None:
         """Queue frames for the bus; the live loop sends them with the next outputs."""
@@ -586,7 +605,8 @@ class Runtime:
     def health(self) -> dict[str, Any]:
         with self.lock:
             streams = {r.layout.name: r.tracker.counts.as_dict() for r in self._streams.values()}
-            return self.counters.report(self.now, self.last_frame_time, streams)
+            return self.counters.report(self.now, self.last_frame_time, streams,
+                                        self.faults.report())
 
 
 __all__ = ["FRAME_ERROR_KINDS", "MAX_COUNTED_IDS", "MAX_UNKNOWN_IDS", "OTHER_IDS", "Rates", "Runtime"]

@@ -10,7 +10,7 @@ from cell.core import registry
 from cell.app.cell import Cell
 
 from . import errors
-from .metrics import FrameRates
+from .metrics import FrameRates, Metrics
 from .routes import (channels, engine, families, filters, health, metrics, page, scenario, scripts,
                      simulator, stream)
 from .schemas import ERROR_RESPONSES
@@ -38,6 +38,7 @@ def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
     app.state.cell = cell
     app.state.hub = StreamHub(cell)
     app.state.frame_rates = FrameRates(cell)
+    app.state.metrics = Metrics(cell, app.state.frame_rates, app.state.hub)
     settings = cell.settings
     security = security or (Security.from_settings(settings) if settings else Security())
     app.state.security = security

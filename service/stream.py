@@ -78,6 +78,8 @@ class Record:
     values: dict[str, tuple[float | None, str, float | None]]
     #: encoded messages by subscription, shared by clients that subscribe alike
     encoded: dict[tuple[str, ...], str] = field(default_factory=dict)
+    #: bus time of the newest value in each subscription's message (frame-to-API latency)
+    newest: dict[tuple[str, ...], float | None] = field(default_factory=dict)
 
 
 class Client:
@@ -126,6 +128,7 @@ class Client:
             body = json.dumps({n: [vals[n][0], vals[n][1], vals[n][2]] for n in names},
                               separators=(",", ":"))
             text = rec.encoded[key] = f'{{"type":"data","seq":{rec.seq},"time":{rec.time!r},"values":{body}'
+            rec.newest[key] = max((vals[n][2] for n in names if vals[n][2] is not None), default=None)
         return f'{text},"dropped":{self.dropped}}}'
 
 

@@ -239,6 +239,10 @@ class Cell:
                 "ticks": rt.ticks,
                 "tick_overruns": rt.tick_overruns,
                 "tick_seconds_max": rt.tick_seconds_max,
+                "tick_histogram": rt.counters.tick_histogram(),
+                "block_faults": rt.faults.report(),
+                "missed_cycles": dict(rt.counters.gaps.missed),
+                "loop": self.live.status() if self.live is not None else None,
                 "steps": [{"block": n, "family": rt.blocks[n].family, "seconds": secs, "count": count}
                           for n, (secs, count) in sorted(rt.step_time.items()) if n in rt.blocks],
                 "block_errors": dict(rt.block_errors),

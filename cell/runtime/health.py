@@ -10,7 +10,9 @@ outlasted their period and the wall time of each block's step. The scheduler
 
 from __future__ import annotations
 
+import bisect
 import collections
+import math
 from typing import Any
 
 from cell.bus.dbc import DECODE_ERROR_KINDS
@@ -39,6 +41,10 @@ OUTAGE_S = 1.0
 
 #: Events kept for the per-minute counts (beyond this, the oldest are forgotten).
 EVENT_TIMES = 10_000
+
+#: Upper bounds (wall seconds) of the tick-duration histogram's buckets; a last bucket holds
+#: everything slower.
+TICK_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5)
 
 
 class CycleGaps:
@@ -127,6 +133,11 @@ class HealthCounters:
         self.tick_seconds_max = 0.0
         #: per block: [wall seconds spent in step, steps]
         self.step_time: dict[str, list[float]] = {}
+        #: ticks by duration: ``tick_buckets[i]`` ticks took at most TICK_BUCKETS[i] (and more
+        #: than the bound before); the last holds the slower ones
+        self.tick_buckets = [0] * (len(TICK_BUCKETS) + 1)
+        #: wall seconds of all ticks together
+        self.tick_seconds_sum = 0.0
         #: bus times of the latest overruns, for the overruns per minute
         self.overrun_times: collections.deque[float] = collections.deque(maxlen=EVENT_TIMES)
         #: cycles missed by cyclic messages (:class:`CycleGaps`)
@@ -150,6 +161,17 @@ class HealthCounters:
         self.ticks += 1
         if seconds > self.tick_seconds_max:
             self.tick_seconds_max = seconds
+        self.tick_seconds_sum += seconds
+        self.tick_buckets[bisect.bisect_left(TICK_BUCKETS, seconds)] += 1
+
+    def tick_histogram(self) -> tuple[list[tuple[float, int]], float]:
+        """Cumulative ``(upper bound, ticks)`` of the tick durations (the last bound is
+        infinite) and their sum, as a Prometheus histogram counts them."""
+        out, total = [], 0
+        for bound, n in zip((*TICK_BUCKETS, math.inf), self.tick_buckets):
+            total += n
+            out.append((bound, total))
+        return out, self.tick_seconds_sum
 
     def count_overrun(self, t: float | None = None) -> None:
         """Count a tick (at bus time ``t``) whose work took longer than its period."""
@@ -222,4 +244,4 @@ class HealthCounters:
 
 
 __all__ = ["FRAME_ERROR_KINDS", "MAX_COUNTED_IDS", "MAX_UNKNOWN_IDS", "MINUTE_S", "OTHER_IDS", "OUTAGE_S",
-           "CycleGaps", "HealthCounters"]
+           "TICK_BUCKETS", "CycleGaps", "HealthCounters"]

@@ -151,6 +151,7 @@ async def _writer(ws: WebSocket, client: Client) -> None:
         for rec in records:
             await ws.send_text(client.message(rec))
             client.sent += 1
+            ws.app.state.metrics.served("stream", rec.newest.get(client.patterns))
 
 
 @router.get("/stream/sse", name="stream as server-sent events", response_class=StreamingResponse,
@@ -208,6 +209,7 @@ async def _sse(request: Request, hub: StreamHub, patterns: tuple[str, ...],
             for rec in records:
                 yield f"event: data\nid: {rec.seq}\ndata: {client.message(rec)}\n\n"
                 sent += 1
+                request.app.state.metrics.served("stream", rec.newest.get(client.patterns))
                 if count is not None and sent >= count:
                     return
     finally:

@@ -40,7 +40,7 @@ def parse(text: str) -> dict[str, float]:
             continue
         m = LINE.match(line)
         assert m, f"not a Prometheus sample line: {line!r}"
-        base = re.sub(r"_(sum|count)$", "", m.group(1))
+        base = re.sub(r"_(sum|count|bucket)$", "", m.group(1))
         assert m.group(1) in typed or base in typed, f"{m.group(1)} has no # TYPE line"
         samples[m.group(1) + (m.group(2) or "")] = float(m.group(3))
     return samples

@@ -39,6 +39,9 @@ MINUTE_S = 60.0
 #: stopped, the bus fell silent: its channels turn stale and say so), not missed cycles.
 OUTAGE_S = 1.0
 
+#: Bus time a message with a gap is watched before its missed cycles are counted.
+SETTLE_S = 0.5
+
 #: Events kept for the per-minute counts (beyond this, the oldest are forgotten).
 EVENT_TIMES = 10_000
 
@@ -50,52 +53,68 @@ TICK_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5,
 class CycleGaps:
     """Frames lost on the way, found from each cyclic message's arrivals.
 
-    Between two looks at a message (the runtime's decode of its newest frame), ``dn`` frames
-    of it arrived over ``dt`` seconds of bus time; a message whose DBC cycle time is ``c``
-    should have brought ``round(dt / c)``, so ``round(dt / c) - dn`` cycles were missed (a
-    single inter-arrival over 1.5 cycles is one missed cycle). Jitter does not add up, a
-    sender faster than its DBC cycle misses nothing, and a gap over :data:`OUTAGE_S` is
-    counted as an outage instead.
+    A frame that comes more than 1.5 DBC cycles after the one before is a sign of loss, but
+    not proof: a sender that was late sends what was due at once, and bus time is the send or
+    receive time on these buses. So a gap only makes its message *suspect*; once at least
+    :data:`SETTLE_S` of bus time has passed since the last look, the frames that came are
+    compared with the cycles that passed: ``round(dt / cycle) - frames`` cycles were missed,
+    when positive. A late sender that caught up misses nothing, jitter does not add up, a
+    sender slower than its DBC cycle (no single gap) misses nothing, and a gap over
+    :data:`OUTAGE_S` is an outage instead (its sender stopped, the bus fell silent: the
+    channels turn stale and say so).
     """
 
     def __init__(self) -> None:
-        #: frame key -> (bus time of its newest frame seen, frames of it counted then)
-        self.seen: dict[tuple[int, bool], tuple[float, int]] = {}
+        #: frame key -> bus time of its newest frame (the scheduler keeps it, frame by frame)
+        self.arrived: dict[tuple[int, bool], float] = {}
         #: missed cycles by message name
         self.missed: collections.Counter[str] = collections.Counter()
         #: outages (gaps over OUTAGE_S) by message name
         self.outages: collections.Counter[str] = collections.Counter()
-        #: (bus time, cycles) of each gap, for the last minute's count
+        #: (bus time, cycles) of each loss, for the last minute's count
         self.times: collections.deque[tuple[float, int]] = collections.deque(maxlen=EVENT_TIMES)
+        #: key -> (message name, cycle) of messages with a gap since their window began
+        self._suspect: dict[tuple[int, bool], tuple[str, float]] = {}
+        #: key -> (bus time, frames counted) where the message's window began
+        self._window: dict[tuple[int, bool], tuple[float, int]] = {}
 
-    def observe(self, key: tuple[int, bool], name: str, cycle_s: float | None, ts: float,
-                count: int | None) -> None:
-        """The newest frame of message ``name`` is stamped ``ts``; ``count`` of its frames
-        have been received so far."""
-        if count is None or not cycle_s:
-            return
-        prev = self.seen.get(key)
-        if prev is not None and ts <= prev[0]:
-            return  # an older frame than one already seen: nothing to learn
-        self.seen[key] = (ts, count)
-        if prev is None:
-            return
-        dt, dn = ts - prev[0], count - prev[1]
+    def gap(self, key: tuple[int, bool], name: str, dt: float, cycle_s: float) -> None:
+        """Message ``name`` (cycle ``cycle_s``) came ``dt`` after its frame before."""
         if dt > OUTAGE_S:
             self.outages[name] += 1
+            self._window.pop(key, None)  # a new window begins after the outage
+            self._suspect.pop(key, None)
             return
-        missed = round(dt / cycle_s) - dn
+        self._suspect[key] = (name, cycle_s)
+
+    def settle(self, key: tuple[int, bool], ts: float, count: int | None) -> None:
+        """The message of ``key``'s newest frame is stamped ``ts``; ``count`` of its frames
+        have been received so far (called as the runtime decodes it)."""
+        if count is None:
+            return
+        w = self._window.get(key)
+        if w is None or ts < w[0]:
+            self._window[key] = (ts, count)
+            return
+        suspect = self._suspect.get(key)
+        if suspect is None:
+            self._window[key] = (ts, count)
+            return
+        if ts - w[0] < SETTLE_S:
+            return  # let a late sender catch up before counting
+        name, cycle = suspect
+        missed = round((ts - w[0]) / cycle) - (count - w[1])
         if missed > 0:
             self.missed[name] += missed
             self.times.append((ts, missed))
+        del self._suspect[key]
+        self._window[key] = (ts, count)
 
     def last_minute(self, now: float | None) -> int:
         if now is None:
             return 0
         return sum(n for t, n in self.times if t > now - MINUTE_S)
 
-    def forget(self) -> None:
-        self.seen.clear()
 
 
 class HealthCounters:

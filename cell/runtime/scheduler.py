@@ -184,7 +184,9 @@ class Runtime:
         #: (task, Hz) of the three tasks, for the tick arithmetic
         self._hz = tuple((r, getattr(self.rates, r)) for r in RATE_NAMES)
         #: frame key -> (DBC message, its length): the decode's lookup, once per frame
-        self._known = {key: (m, m.length) for key, m in self.db.by_id.items()}
+        #: and the inter-arrival beyond which cycles were missed (1.5 DBC cycles; inf: no cycle)
+        self._known = {key: (m, m.length, 1.5 * m.cycle_time / 1000.0 if m.cycle_time else math.inf)
+                       for key, m in self.db.by_id.items()}
         self.outbox: list[can.Message] = []
         self.tick_listeners: list[Callable[[float], None]] = []
         #: small state kept for the service between requests (trip onset, reset counter)
@@ -331,6 +333,8 @@ class Runtime:
         frame_times = counters.frame_times
         by_id_count = counters.frames_by_id
         max_ids = counters.max_counted_ids
+        gaps = counters.gaps
+        arrived = gaps.arrived
         with self.lock:
             nxt = self._next_due
             last = self.last_frame_time
@@ -365,6 +369,11 @@ class Runtime:
                             counters.count_decode_error(exc.kind, key)
                         continue
                     message = entry[0]
+                    prev_ts = arrived.get(key)
+                    if prev_ts is None or ts > prev_ts:
+                        arrived[key] = ts
+                        if prev_ts is not None and ts - prev_ts > entry[2]:
+                            gaps.gap(key, message.name, ts - prev_ts, entry[2] / 1.5)
                     if streams:
                         route = streams.get(key)
                         if route is not None:
@@ -384,10 +393,9 @@ class Runtime:
         pending = list(self._pending.items())
         self._pending.clear()  # in place: ingest_many holds a reference to this dict
         chans = self.store.by_name
-        gaps, counts = self.counters.gaps, self.counters.frames_by_id
+        settle, counts = self.counters.gaps.settle, self.counters.frames_by_id
         for key, (message, ts, data) in pending:
-            gaps.observe(key, message.name, message.cycle_time and message.cycle_time / 1000.0,
-                         ts, counts.get(key))
+            settle(key, ts, counts.get(key))
             try:
                 values = self.db.decode_payload(message, bytes(data))
             except FrameDecodeError as exc:

@@ -135,3 +135,53 @@ def test_a_bus_of_random_ids_keeps_the_counts_bounded(db, monkeypatch):
     assert m['testcell_frames_total{id="other",message="unknown"}'] == 32
     assert m['testcell_frames_total{id="0x00010000",message="unknown"}'] == 1
     assert m['testcell_decode_errors_total{kind="unknown_id"}'] == 40
+
+
+def test_metrics_parse_with_prometheus_client_and_carry_the_histograms(db):
+    from prometheus_client.parser import text_string_to_metric_families
+
+    rt = Runtime(db, native_filters())
+    client = TestClient(create_app(Cell(runtime=rt, bus="virtual:test")))
+    t0 = round(time.time() - 2.0, 2)  # frames stamped with the wall clock, as udp_multicast does
+    t = t0
+    while t < t0 + 2.0 - 1e-9:
+        rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 680.0, "EXH_BP_R": 680.0}, t))
+        t = round(t + 0.01, 6)
+    newest = t - 0.01
+    rt.advance(newest)
+    lower = upper = 0.0
+    for path in ("/channels", "/channels", "/channels/EXH_BP_R"):
+        before = time.time()
+        assert client.get(path).status_code == 200
+        lower, upper = lower + before - newest, upper + time.time() - newest
+    fams = {f.name: f for f in text_string_to_metric_families(client.get("/metrics").text)}
+    for name in ("testcell_frames", "testcell_frames_per_second", "testcell_decode_errors",
+                 "testcell_late_frames", "testcell_ticks", "testcell_tick_overruns",
+                 "testcell_tick_seconds_max", "testcell_block_step_seconds", "testcell_block_errors",
+                 "testcell_websocket_clients", "testcell_stream_clients", "testcell_stream_dropped",
+                 "testcell_bus_time_seconds", "testcell_missed_cycles", "testcell_block_faults"):
+        assert name in fams, name
+    ticks = fams["testcell_tick_seconds"]
+    assert ticks.type == "histogram"
+    samples = {(s.name, s.labels.get("le")): s.value for s in ticks.samples}
+    buckets = [v for (n, le), v in samples.items() if n.endswith("_bucket")]
+    assert buckets == sorted(buckets) and samples[("testcell_tick_seconds_bucket", "+Inf")] == rt.ticks
+    assert samples[("testcell_tick_seconds_count", None)] == rt.ticks == 20
+    assert 0 < samples[("testcell_tick_seconds_sum", None)] <= rt.ticks * rt.tick_seconds_max
+    lat = fams["testcell_frame_to_api_seconds"]
+    assert lat.type == "histogram"
+    got = {(s.name, s.labels["route"]): s.value for s in lat.samples if "le" not in s.labels}
+    assert got[("testcell_frame_to_api_seconds_count", "channels")] == 3
+    assert lower <= got[("testcell_frame_to_api_seconds_sum", "channels")] <= upper
+    assert got[("testcell_frame_to_api_seconds_count", "stream")] == 0
+
+
+def test_values_whose_bus_time_is_not_the_wall_clock_give_no_latency(fed):
+    from prometheus_client.parser import text_string_to_metric_families
+
+    rt, _, _ = fed  # bus time from 0 s: a replayed log, a virtual bus
+    client = TestClient(create_app(Cell(runtime=rt, bus="virtual:test")))
+    client.get("/channels")
+    fams = {f.name: f for f in text_string_to_metric_families(client.get("/metrics").text)}
+    counts = [s.value for s in fams["testcell_frame_to_api_seconds"].samples if s.name.endswith("_count")]
+    assert counts == [0, 0]

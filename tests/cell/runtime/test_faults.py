@@ -137,7 +137,8 @@ def test_a_raising_block_is_isolated_counted_backed_off_and_recovers(db, exc):
     assert all(rt.channels[b.name].status == "ok" for b in native_filters())
     h = client.get("/health").json()
     f = h["block_faults"]["flaky"]
-    assert (f["exception"], f["streak"], f["backoff_s"], f["retry_at"], f["backing_off"]) == (3, 3, 4.0, 8.0, True)
+    assert (f["exception"], f["streak"], f["backoff_s"]) == (3, 3, 4.0)
+    assert f["retry_at"] == 8.0 and f["backing_off"]
     assert f["last_reason"] == f"{exc.__name__}: cannot take this input" and f["resets"] == 3
     assert h["block_errors"]["flaky"] == 3
     assert h["status"] == "degraded" and any(r.startswith("block flaky faulted") for r in h["reasons"])

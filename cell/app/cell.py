@@ -9,8 +9,9 @@ the runtime's lock itself, so the service never holds the lock nor reads the run
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+import contextlib
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
 from typing import Any
 
 import can
@@ -43,6 +44,10 @@ class Cell:
     scripts: ScriptManager | None = None
     tuning: TuningStore | None = None
     live: LiveCell | None = None
+    #: the last snapshot, readings and health answered, for readers while a step hangs
+    _seen: dict[str, Any] = field(default_factory=lambda: {"snapshot": [], "readings": {},
+                                                           "health": None},
+                                  init=False, repr=False)
 
     # -- bus time ---------------------------------------------------------------------
     @property
@@ -70,9 +75,31 @@ class Cell:
         else ``None``; while there is one, every channel reads ``stale`` with it."""
         return self.live.problem() if self.live is not None else None
 
+    @contextlib.contextmanager
+    def _held(self) -> Iterator[bool]:
+        """Hold the runtime's lock; yields ``False`` (not held) when a live loop has held it
+        longer than its stall limit (a step that hangs), so readers answer from what they
+        saw last, all ``stale``, instead of hanging with the loop."""
+        lock = self.runtime.lock
+        got = lock.acquire(timeout=max(0.05, self.live.stall_s)) if self.live is not None \
+            else lock.acquire()
+        try:
+            yield got
+        finally:
+            if got:
+                lock.release()
+
+    def _stuck(self) -> str:
+        return self.loop_problem() or "the runtime loop is stuck in a step (its lock is held)"
+
     def snapshot(self) -> list[dict[str, Any]]:
         """Every channel as seen now, by name: value, unit, bus time, status and source."""
-        snaps = self.runtime.snapshot()
+        with self._held() as held:
+            if not held:
+                problem = self._stuck()
+                return [{**s, "status": STALE, "reason": problem} for s in self._seen["snapshot"]]
+            snaps = self.runtime.snapshot()
+            self._seen["snapshot"] = snaps
         problem = self.loop_problem()
         if problem:
             for snap in snaps:
@@ -116,9 +143,16 @@ class Cell:
         """The bus time ``at`` (default: now) and, as seen then, the value, status and bus
         time of the value of every channel, or of those of ``names`` that exist."""
         rt = self.runtime
-        with rt.lock:
+        with self._held() as held:
+            if not held:
+                seen = self._seen["readings"]
+                wanted = seen if names is None else {n: seen[n] for n in names if n in seen}
+                now = self.live.estimated_bus_time() if self.live is not None else None
+                return now, {n: (v, STALE, vt) for n, (v, _, vt) in wanted.items()}
             t = rt.now if at is None else at
             readings = rt.readings(names, at=t)
+            if names is None:
+                self._seen["readings"] = readings
         if self.loop_problem():
             readings = {n: (v, STALE, vt) for n, (v, _, vt) in readings.items()}
         return t, readings
@@ -211,12 +245,18 @@ class Cell:
         """Status and reasons, the engine's trip, the bus, whether the live loop runs, and
         the runtime's counts (frames, bad frames, blocks' errors, streams, overruns)."""
         rt = self.runtime
-        with rt.lock:
-            counts = rt.health()
+        with self._held() as held:
             loop = self.live.status() if self.live is not None else None
-            return {**supervision.assess(rt, self.live), "bus": self.bus,
-                    "runtime_running": self.live.running if self.live else False, **counts,
-                    "loop": loop, "limits": dict(supervision.LIMITS)}
+            if not held and self._seen["health"]:
+                problem = self._stuck()
+                return {**self._seen["health"], "status": supervision.FAILED, "reasons": [problem],
+                        "loop": {**loop, "problem": problem}}  # type: ignore[dict-item]
+            counts = rt.health()
+            out = {**supervision.assess(rt, self.live), "bus": self.bus,
+                   "runtime_running": self.live.running if self.live else False, **counts,
+                   "loop": loop, "limits": dict(supervision.LIMITS)}
+            self._seen["health"] = out
+            return out
 
     def frames_by_id(self) -> dict[tuple[int, bool], int]:
         """Frames received so far per ``(arbitration ID, extended)``, known or not."""

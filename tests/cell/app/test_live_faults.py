@@ -167,6 +167,25 @@ def test_a_stalled_loop_is_counted_and_no_output_older_than_a_cycle_reaches_the_
     assert h["status"] == "degraded"
 
 
+def test_while_a_step_hangs_readers_answer_at_once_all_stale_and_health_failed(db):
+    hang = Hang()
+    rig = Cellrig(db, [*native_filters(), hang])
+    with rig:
+        c = rig.client
+        c.get("/channels")
+        c.get("/health")
+        hang.hang = 2.5  # the loop holds the runtime's lock in this step
+        assert wait(lambda: rig.cell.loop_problem() is not None, 3)
+        started = time.monotonic()
+        chans = c.get("/channels").json()
+        h = c.get("/health").json()
+        took = time.monotonic() - started
+        assert wait(lambda: rig.cell.loop_problem() is None, 10)  # the step returned
+    assert took < 2.0  # answered while the step still hung (each waits at most the stall limit)
+    assert chans and all(ch["status"] == "stale" and "stalled" in ch["reason"] for ch in chans)
+    assert h["status"] == "failed" and "stalled" in h["reasons"][0]
+
+
 def test_lag_and_kernel_drops_are_reported_as_the_bus_allows(db):
     rig = Cellrig(db, native_filters())
     with rig:

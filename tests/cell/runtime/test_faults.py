@@ -142,6 +142,9 @@ def test_a_raising_block_is_isolated_counted_backed_off_and_recovers(db, exc):
     assert f["last_reason"] == f"{exc.__name__}: cannot take this input" and f["resets"] == 3
     assert h["block_errors"]["flaky"] == 3
     assert h["status"] == "degraded" and any(r.startswith("block flaky faulted") for r in h["reasons"])
+    metrics = client.get("/metrics").text
+    assert 'testcell_block_faults_total{block="flaky",kind="exception"} 3.0' in metrics
+    assert 'testcell_block_backoff_seconds{block="flaky"} 4.0' in metrics
     flaky.failing, flaky.tries = False, []
     feed(rt, db, 5.05, 8.25)
     assert flaky.tries == [8.0, 8.1, 8.2]  # retried when its backoff ended, then every tick

@@ -20,6 +20,7 @@ from cell.app.live import LiveCell
 from cell.app.tuning import TuningStore
 from cell.bus.scenario import describe_frames, scenario_frames, scenario_keys
 from cell.core import registry
+from cell.core.errors import UnknownBlockError
 from cell.core.settings import Settings
 from cell.runtime import supervision
 from cell.runtime.blocks import Block
@@ -109,7 +110,12 @@ class Cell:
     def channel(self, name: str) -> dict[str, Any]:
         """One channel as seen now; :class:`~cell.core.errors.UnknownBlockError` if none."""
         rt = self.runtime
-        with rt.lock:
+        with self._held() as held:
+            if not held:
+                for seen in self._seen["snapshot"]:
+                    if seen["name"] == name:
+                        return {**seen, "status": STALE, "reason": self._stuck()}
+                raise UnknownBlockError("channel", name, [s["name"] for s in self._seen["snapshot"]])
             snap = rt.channel(name).snapshot(rt.now)
         problem = self.loop_problem()
         if problem:
@@ -131,7 +137,11 @@ class Cell:
     def history(self, name: str, seconds: float) -> list[tuple[float, float | None, str]]:
         """``(time, value or None, status)`` of a channel at each MED tick of the last
         ``seconds`` of bus time."""
-        points = self.runtime.history(name, seconds)
+        with self._held() as held:
+            if not held:  # a step hangs: the channel is stale now, its history waits
+                now = self.live.estimated_bus_time() if self.live is not None else None
+                return [] if now is None else [(now, None, STALE)]
+            points = self.runtime.history(name, seconds)
         problem = self.loop_problem()
         now = self.bus_time()
         if problem and now is not None and (not points or now > points[-1][0]):

@@ -178,10 +178,12 @@ def test_while_a_step_hangs_readers_answer_at_once_all_stale_and_health_failed(d
         assert wait(lambda: rig.cell.loop_problem() is not None, 3)
         started = time.monotonic()
         chans = c.get("/channels").json()
+        one = c.get("/channels/EXH_BP_R").json()
         h = c.get("/health").json()
         took = time.monotonic() - started
         assert wait(lambda: rig.cell.loop_problem() is None, 10)  # the step returned
     assert took < 2.0  # answered while the step still hung (each waits at most the stall limit)
+    assert one["status"] == "stale" and one["name"] == "EXH_BP_R"
     assert chans and all(ch["status"] == "stale" and "stalled" in ch["reason"] for ch in chans)
     assert h["status"] == "failed" and "stalled" in h["reasons"][0]
 

@@ -82,8 +82,10 @@ class Cell:
         longer than its stall limit (a step that hangs), so readers answer from what they
         saw last, all ``stale``, instead of hanging with the loop."""
         lock = self.runtime.lock
-        got = lock.acquire(timeout=max(0.05, self.live.stall_s)) if self.live is not None \
-            else lock.acquire()
+        if self.live is None:
+            got = lock.acquire()
+        else:  # once the loop is known to be stalled, no reader waits for it
+            got = lock.acquire(timeout=0.0 if self.live.problem() else max(0.05, self.live.stall_s))
         try:
             yield got
         finally:

@@ -39,11 +39,13 @@ class Hang(Block):
     def __init__(self):
         super().__init__("hang", ["EXH_BP_L"], ["HANG_OUT"])
         self.hang = 0.0
+        self.returned = None
 
     def _step(self, t, inputs):
         if self.hang:
             hang, self.hang = self.hang, 0.0
             time.sleep(hang)
+            self.returned = time.monotonic()
         return {"HANG_OUT": inputs["EXH_BP_L"]}
 
 
@@ -174,15 +176,14 @@ def test_while_a_step_hangs_readers_answer_at_once_all_stale_and_health_failed(d
         c = rig.client
         c.get("/channels")
         c.get("/health")
-        hang.hang = 2.5  # the loop holds the runtime's lock in this step
+        hang.hang = 1.5  # the loop holds the runtime's lock in this step
         assert wait(lambda: rig.cell.loop_problem() is not None, 3)
-        started = time.monotonic()
         chans = c.get("/channels").json()
         one = c.get("/channels/EXH_BP_R").json()
         h = c.get("/health").json()
-        took = time.monotonic() - started
+        answered = time.monotonic()
         assert wait(lambda: rig.cell.loop_problem() is None, 10)  # the step returned
-    assert took < 2.0  # answered while the step still hung (each waits at most the stall limit)
+    assert answered < hang.returned  # answered while the step still hung
     assert one["status"] == "stale" and one["name"] == "EXH_BP_R"
     assert chans and all(ch["status"] == "stale" and "stalled" in ch["reason"] for ch in chans)
     assert h["status"] == "failed" and "stalled" in h["reasons"][0]

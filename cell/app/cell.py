@@ -257,8 +257,8 @@ class Cell:
         """Status and reasons, the engine's trip, the bus, whether the live loop runs, and
         the runtime's counts (frames, bad frames, blocks' errors, streams, overruns)."""
         rt = self.runtime
+        loop = self.live.status() if self.live is not None else None
         with self._held() as held:
-            loop = self.live.status() if self.live is not None else None
             if not held and self._seen["health"]:
                 problem = self._stuck()
                 return {**self._seen["health"], "status": supervision.FAILED, "reasons": [problem],

@@ -105,6 +105,7 @@ class LiveCell:
         self._newest: float | None = None  # newest frame time received
         self._limits: dict[tuple[int, bool], float] = {}
         self._drop_samples: collections.deque[tuple[float, int]] = collections.deque(maxlen=120)
+        self._next_drop_sample = 0.0
         #: called with the bus time now, once per MED period, while the loop has a problem
         self.stall_listeners: list = []
         self._watchdog: threading.Thread | None = None
@@ -194,9 +195,11 @@ class LiveCell:
         return max(0.0, est - now)
 
     def kernel_drops(self) -> int | None:
-        """Datagrams the kernel dropped on this loop's bus socket (``None``: not reported)."""
-        now = kernel_drops(self.bus)
-        return None if now is None else self._drops_before + now
+        """Datagrams the kernel dropped on this loop's bus socket, as the loop last read them
+        (once a second, never in a reader's request); ``None``: not reported."""
+        if not self._drop_samples:
+            return None
+        return self._drops_before + self._drop_samples[-1][1]
 
     def recent_kernel_drops(self, seconds: float) -> int:
         """Datagrams the kernel dropped over about the last ``seconds`` of wall clock (sampled
@@ -209,12 +212,12 @@ class LiveCell:
         return max(0, samples[-1][1] - base)
 
     def _sample_drops(self, now: float) -> None:
-        if self._drop_samples and now - self._drop_samples[-1][0] < 1.0:
+        if now < self._next_drop_sample:
             return
-        n = self.kernel_drops()
-        if n is None:
-            return
-        self._drop_samples.append((now, n))
+        self._next_drop_sample = now + 1.0
+        n = kernel_drops(self.bus)
+        if n is not None:
+            self._drop_samples.append((now, n))
 
     def dropped_stale_since(self, seconds: float) -> int:
         """Stale output frames dropped over the last ``seconds`` of wall clock."""

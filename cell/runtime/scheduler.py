@@ -96,10 +96,15 @@ def _checked(block: Block, outputs: Any, chans: dict[str, Channel]) -> dict[str,
     for name, value in outputs.items():
         if name not in block.outputs or name not in chans:
             raise KeyError(f"{block.name} returned {name!r}, which is not one of its outputs")
-        if isinstance(value, complex) or not isinstance(value, (int, float, np.floating, np.integer)):
-            raise TypeError(f"{block.name} returned {type(value).__name__} {value!r} for {name}; "
+        if isinstance(value, (complex, np.complexfloating)) or (
+                isinstance(value, np.ndarray) and value.dtype.kind == "c"):
+            raise TypeError(f"{block.name} returned the complex number {value!r} for {name}; "
                             "outputs are real numbers")
-        out[name] = float(value)
+        try:
+            out[name] = float(value)
+        except (TypeError, ValueError) as exc:
+            raise TypeError(f"{block.name} returned {type(value).__name__} {value!r} for {name}; "
+                            f"outputs are real numbers ({exc})") from None
     return out
 
 

@@ -140,6 +140,8 @@ def test_no_stale_output_reaches_the_bus_after_sigstop_and_health_reports_the_st
     assert len(after) >= 10, "the runtime did not publish again after SIGCONT"
     cycle = 0.1  # BP_FILT_R's DBC cycle, one MED period
     ages = sorted(seen - m.timestamp for seen, m in outputs)
+    print(f"\n  {len(outputs)} BP_FILT_R frames, {len(after)} after SIGCONT; oldest on arrival "
+          f"{ages[-1] * 1000:.1f} ms; health: {h and h['loop']}")
     # on main: a burst of the ticks caught up after SIGCONT, up to 5 s old
     assert ages[-1] < cycle + 0.1, ages[-10:]
     assert h is not None and h["loop"]["stalls"] >= 1 and h["loop"]["last_stall_s"] >= 4.5, h["loop"]

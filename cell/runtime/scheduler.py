@@ -30,6 +30,7 @@ from cell.bus.dbc import CellDatabase, FrameDecodeError
 from cell.core.errors import ConfigError, UnknownBlockError
 from cell.runtime.health import (FRAME_ERROR_KINDS, MAX_COUNTED_IDS, MAX_UNKNOWN_IDS, OTHER_IDS,
                                  HealthCounters)
+from cell.runtime.plausibility import Plausibility
 from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_streams
 from cell.runtime.store import ChannelStore, Reading
 
@@ -149,6 +150,8 @@ class Runtime:
         # an input goes stale by the third MED tick after its frames stop
         self.store = ChannelStore(db, self.history_len, stale_floor=1.5 / self.rates.MED)
         self.counters = HealthCounters()
+        #: range and rate checks of the decoded bus values (:mod:`cell.runtime.plausibility`)
+        self.plausibility = Plausibility(db.messages, self.counters.implausible)
         #: newest undecoded frame per message: frames are decoded when a tick or a reader
         #: needs their values, so the ten frames of a 100 Hz message between two 10 Hz
         #: ticks cost one decode, not ten
@@ -361,6 +364,7 @@ class Runtime:
             except FrameDecodeError as exc:
                 self.counters.count_decode_error(exc.kind)
                 continue
+            bad = self.plausibility.check(message.name, values, ts)  # {signal: reason} or None
             for name, value in values.items():
                 if self.producer.get(name):
                     continue  # our own output seen on the bus (e.g. a second runtime's)
@@ -369,6 +373,8 @@ class Runtime:
                     ch = self.store.add(name)
                 if ch.t is None or ts >= ch.t:
                     ch.update(value, ts)
+                    if bad is not None and name in bad:
+                        ch.mark(INVALID, bad[name])  # implausible: no block reads it
 
     def advance(self, t: float) -> None:
         """Run every tick due at or before bus time ``t`` (end of a log, or a silent bus)."""

@@ -72,6 +72,12 @@ class BlockOut(BaseModel):
     state: dict[str, Any]
 
 
+class TunedOut(BlockOut):
+    """A block after a ``PATCH``, with what did not go as asked (applied but not saved)."""
+
+    warnings: list[str] = []
+
+
 class FamilyOut(BaseModel):
     """A block family: its resource ``/{section}``, what its blocks are, example PATCH
     bodies, and the names of the cell's blocks of that family (empty: no such resource)."""

@@ -25,6 +25,11 @@ SHAPES = ("scalar", "vector", "diag", "matrix")
 
 Bound = float | tuple[float, ...] | None
 
+#: Bounds of every element of a covariance (a positive-definite ``diag`` or ``matrix``
+#: :class:`Param`) that declares none of its own: the range over which the estimators'
+#: numerics are tested. 1e300 or 5e-324 is no noise variance.
+COVARIANCE_BOUNDS = (1e-12, 1e6)
+
 
 @dataclass(frozen=True)
 class Param:
@@ -67,6 +72,9 @@ class Param:
     def __post_init__(self) -> None:
         if self.shape not in SHAPES:
             raise ValueError(f"Param {self.name}: shape must be one of {SHAPES}, got {self.shape!r}")
+        if self.pd and self.gt is None and self.ge is None and self.le is None:
+            object.__setattr__(self, "ge", COVARIANCE_BOUNDS[0])
+            object.__setattr__(self, "le", COVARIANCE_BOUNDS[1])
 
     def check(self, value: Any) -> Any:
         """Return ``value`` converted to the parameter's type and shape, or raise :class:`ParamError`."""
@@ -221,6 +229,9 @@ class Block:
     keeps_input_unit: ClassVar[bool] = False
     #: parameters that are saved but not restored at start-up (a controller starts disabled)
     VOLATILE: ClassVar[tuple[str, ...]] = ()
+    #: parameters that name an input channel -> the unit that channel must have (``""``: any);
+    #: the runtime refuses a change naming a channel there is not (:mod:`cell.runtime.checks`)
+    CHANNEL_PARAMS: ClassVar[dict[str, str]] = {}
     #: crank-angle sample streams (:mod:`cell.runtime.samples`) the block consumes sample by sample,
     #: besides its inputs read at ticks; empty for an ordinary block
     streams: tuple[str, ...] = ()
@@ -297,6 +308,11 @@ class Block:
         for key, value in checked.items():
             setattr(self, key, value)
 
+    def safe_unsaved(self, changes: dict[str, Any]) -> bool:
+        """Whether ``changes`` is a safety action that stays applied when it cannot be saved
+        (a controller switched off); the default: no change is."""
+        return False
+
     def _known(self) -> str:
         return ", ".join(self.PARAMS) or "nothing"
 
@@ -315,6 +331,12 @@ class Block:
 
     def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         raise NotImplementedError
+
+    def fallback(self, t: float, reason: str) -> dict[str, float] | None:
+        """The outputs at a tick where an input is not ``ok`` (``reason`` says which and
+        why), instead of a step: a controller holds its last output or goes to its safe
+        output. ``None`` (the default) marks the outputs with the input's status."""
+        return None
 
     # -- sample streams (blocks that declare :attr:`streams`) ---------------------------
     def samples(self, stream: str, index: int, values: np.ndarray, t: float) -> None:

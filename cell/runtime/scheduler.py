@@ -30,6 +30,7 @@ from cell.bus.dbc import CellDatabase, FrameDecodeError
 from cell.core.errors import ConfigError, UnknownBlockError
 from cell.runtime.health import (FRAME_ERROR_KINDS, MAX_COUNTED_IDS, MAX_UNKNOWN_IDS, OTHER_IDS,
                                  HealthCounters)
+from cell.runtime.channel_params import check_channel_params
 from cell.runtime.plausibility import Plausibility
 from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_streams
 from cell.runtime.store import ChannelStore, Reading
@@ -276,7 +277,9 @@ class Runtime:
     def set_params(self, name: str, changes: dict[str, Any], family: str | None = None) -> dict:
         """Validate and apply a parameter change; it takes effect at the next tick."""
         with self.lock:
-            return self.block(name, family).set_params(changes)
+            block = self.block(name, family)
+            check_channel_params(self, block, changes)  # a channel there is, of the right unit
+            return block.set_params(changes)
 
     # -- bus time -------------------------------------------------------------------
     @property
@@ -450,8 +453,13 @@ class Runtime:
                     break
                 values[name] = ch.value  # type: ignore[assignment]
             if bad is not None:
+                held = block.fallback(t, bad[1])  # a controller's held or safe output, or None
                 for out in block.outputs:
-                    chans[out].mark(*bad)
+                    if held is not None and out in held:
+                        chans[out].update(float(held[out]), t)
+                        updated.add(out)
+                    else:
+                        chans[out].mark(*bad)
                 continue
             started = time.perf_counter()
             try:

@@ -82,6 +82,7 @@ class Param:
             return self._check_array(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ParamError(self.name, f"must be a number, got {type(value).__name__} {value!r}")
+        given = value  # as sent: 1e300 is named so, not as the int it converts to
         if self.type is int:
             if isinstance(value, float):
                 if not math.isfinite(value) or value != int(value):
@@ -92,11 +93,11 @@ class Param:
             if not math.isfinite(value):
                 raise ParamError(self.name, f"must be finite, got {value!r}")
         if self.gt is not None and not value > self.gt:
-            raise ParamError(self.name, f"must be > {self.gt:g}, got {value!r}")
+            raise ParamError(self.name, f"must be > {self.gt:g}, got {given!r}")
         if self.ge is not None and not value >= self.ge:
-            raise ParamError(self.name, f"must be >= {self.ge:g}, got {value!r}")
+            raise ParamError(self.name, f"must be >= {self.ge:g}, got {given!r}")
         if self.le is not None and not value <= self.le:
-            raise ParamError(self.name, f"must be <= {self.le:g}, got {value!r}")
+            raise ParamError(self.name, f"must be <= {self.le:g}, got {given!r}")
         return value
 
     def dump(self, value: Any) -> Any:

@@ -108,4 +108,5 @@ def test_disabling_a_controller_works_with_the_state_folder_unwritable(db, tmp_p
     cell.tuning.path = tmp_path / "ok" / "tuning.json"
     assert c.patch("/controllers/PI_R", json={"kp": 0.004}).status_code == 200
     h = c.get("/health").json()
-    assert h["unsaved"] == [] and json.loads(cell.tuning.path.read_text())["controllers"]["PI_R"]["kp"] == 0.004
+    saved = json.loads(cell.tuning.path.read_text())
+    assert h["unsaved"] == [] and saved["controllers"]["PI_R"]["kp"] == 0.004

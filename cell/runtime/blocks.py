@@ -127,11 +127,11 @@ class Param:
                                                 f"eigenvalue is {low:g}") from None
         else:
             label = "diagonal element" if self.shape == "diag" else "element"
-            self._check_elements(arr, label)
-            if self.pd and np.any(arr <= 0.0):
+            if self.pd and np.any(arr <= 0.0):  # first: the covariance bounds would word it
                 i = int(np.argmax(arr <= 0.0))
                 raise ParamError(self.name, f"must be positive definite: {label} [{i}] is "
                                             f"{float(arr[i])!r}")
+            self._check_elements(arr, label)
         arr.flags.writeable = False
         return arr
 

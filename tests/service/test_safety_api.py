@@ -4,6 +4,7 @@ controller is switched off even when the tuning file cannot be written."""
 
 import json
 
+import can
 import pytest
 from fastapi.testclient import TestClient
 
@@ -80,7 +81,7 @@ def drive(rt, db, t0, t1):
             if f.arbitration_id == db.message("VALVE_DEMAND").frame_id]
 
 
-def test_disabling_a_controller_works_with_the_state_folder_unwritable(db, tmp_path):
+def test_disabling_a_controller_works_with_the_state_folder_unwritable(db, tmp_path, caplog):
     """The issue: 500 and the loop kept driving the valve. The state folder here lies under a
     regular file, so no one (root included) can create the tuning file."""
     blocker = tmp_path / "not-a-folder"
@@ -98,6 +99,7 @@ def test_disabling_a_controller_works_with_the_state_folder_unwritable(db, tmp_p
     assert out["params"]["enable"] is False
     (warning,) = out["warnings"]
     assert "PI_R" in warning and "applied but not saved" in warning and "not-a-folder" in warning
+    assert warning in caplog.text  # logged
     h = c.get("/health").json()
     assert h["status"] == "degraded" and warning in h["reasons"] and h["unsaved"] == [warning]
     assert c.patch("/controllers/PI_L", json={"enable": False}).status_code == 200
@@ -110,3 +112,17 @@ def test_disabling_a_controller_works_with_the_state_folder_unwritable(db, tmp_p
     h = c.get("/health").json()
     saved = json.loads(cell.tuning.path.read_text())
     assert h["unsaved"] == [] and saved["controllers"]["PI_R"]["kp"] == 0.004
+
+
+def test_health_counts_implausible_values_by_signal(db, tmp_path):
+    rt, cell, c = make(db, tmp_path / "t.json", native_filters())
+    drive(rt, db, 0.0, 1.0)
+    m = db.message("EXH_BP")
+    forged = can.Message(timestamp=1.0, arbitration_id=m.frame_id, is_extended_id=False,
+                         data=m.encode({"EXH_BP_L": 70000, "EXH_BP_R": 2**31 - 1}, scaling=False,
+                                       strict=False))
+    rt.ingest(forged)
+    rt.advance(1.1)
+    assert c.get("/health").json()["implausible"] == {"EXH_BP_R": 1}
+    ch = c.get("/channels/EXH_BP_R").json()
+    assert ch["status"] == "invalid" and "21474836.47 is outside its range -500..20000" in ch["reason"]

@@ -181,12 +181,12 @@ class Plausibility:
             if v is None:
                 continue
             if v < lo or v > hi:
-                reason = (f"implausible: {name} = {v:.10g} is outside its range "
+                reason = (f"implausible: {name} = {v:g} is outside its range "
                           f"{lim.range_text()}")
             elif rate is not None:
                 last = self._last.get(name)
                 if last is not None and t > last[1] and abs(v - last[0]) > rate * (t - last[1]) + step:
-                    reason = (f"implausible: {name} changed from {last[0]:.10g} to {v:.10g} in "
+                    reason = (f"implausible: {name} changed from {last[0]:g} to {v:g} in "
                               f"{t - last[1]:.3g} s, faster than its limit {rate:g}"
                               f"{' ' + lim.unit if lim.unit else ''}/s")
                 else:

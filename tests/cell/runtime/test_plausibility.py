@@ -46,7 +46,7 @@ def test_exh_bp_at_its_raw_limits_is_invalid_counted_and_feeds_no_filter(db, raw
     rt.advance(0.6)
     ch = rt.channel("EXH_BP_R")
     assert ch.value == pytest.approx(shown) and ch.status == "invalid"
-    assert "EXH_BP_R" in ch.reason and f"= {shown:.10g} is outside" in ch.reason and "-500..20000 mmH2O" in ch.reason
+    assert f"EXH_BP_R = {shown:g} is outside its range -500..20000 mmH2O" in ch.reason
     assert rt.channel("EXH_BP_L").status == "ok"  # 700 mmH2O: in range
     assert rt.health()["implausible"] == {"EXH_BP_R": 1}
     out = rt.channel("EXH_BP_R_Kalman")

@@ -165,6 +165,9 @@ class HealthCounters:
         self.listener_errors: collections.Counter[str] = collections.Counter()
         #: output frames that could not be encoded, by message (they stay off the bus)
         self.encode_errors: collections.Counter[str] = collections.Counter()
+        #: decoded bus values outside their signal's range or rate limit, by signal
+        #: (:mod:`cell.runtime.plausibility`)
+        self.implausible: collections.Counter[str] = collections.Counter()
 
     # -- counting -------------------------------------------------------------------
     def count_decode_error(self, kind: str, key: tuple[int, bool] | None = None) -> None:
@@ -249,6 +252,7 @@ class HealthCounters:
             "block_faults": block_faults or {},
             "streams": streams,
             "withheld": dict(self.withheld),
+            "implausible": dict(self.implausible),
             "tick_overruns": self.tick_overruns,
             "tick_overruns_per_min": self.overruns_per_minute(now),
             "frames_lost": {"missed_cycles": sum(self.gaps.missed.values()),

@@ -10,9 +10,9 @@ router = APIRouter(tags=["health"])
 def health(cell: CellDep) -> HealthOut:
     """Status (``ok``, ``waiting``, ``failed`` with the reason while the live loop is stopped,
     restarting or stalled, or ``degraded`` with the reasons: bus silent or lost, the engine
-    tripped, frames lost, lag, tick overruns per minute, a faulted block, a recent stall),
-    block faults and their backoff, the live loop's counts, frame rate, bad frames by kind,
-    unknown frame IDs, block errors, outputs
-    withheld for not being finite, the time of the last frame, and the sample streams' order
-    and loss counts."""
+    tripped, a change applied but not saved, frames lost, lag, tick overruns per minute, a
+    faulted block, a recent stall), block faults and their backoff, the live loop's counts,
+    frame rate, bad frames by kind, unknown frame IDs, block errors, outputs withheld for not
+    being finite, implausible bus values by signal, the time of the last frame, and the
+    sample streams' order and loss counts."""
     return HealthOut(**cell.health())

@@ -143,7 +143,7 @@ def test_no_stale_output_reaches_the_bus_after_sigstop_and_health_reports_the_st
     print(f"\n  {len(outputs)} BP_FILT_R frames, {len(after)} after SIGCONT; oldest on arrival "
           f"{ages[-1] * 1000:.1f} ms; health: {h and h['loop']}")
     # on main: a burst of the ticks caught up after SIGCONT, up to 5 s old
-    assert ages[-1] < cycle + 0.1, ages[-10:]
+    assert ages[-1] < cycle + 0.4, ages[-10:]  # one cycle, and what a loaded machine adds
     assert h is not None and h["loop"]["stalls"] >= 1 and h["loop"]["last_stall_s"] >= 4.5, h["loop"]
     assert h["loop"]["dropped_stale"] >= 10
     assert h["loop"]["kernel_drops"] is not None  # udp_multicast on Linux reports them

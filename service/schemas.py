@@ -53,6 +53,8 @@ class HealthOut(BaseModel):
     last_frame_time: float | None
     bus_time: float | None
     runtime_running: bool
+    undecodable: int = Field(0, description="datagrams or frames received that could not be "
+                                            "decoded (not a CAN frame at all), skipped")
     streams: dict[str, dict[str, Any]] = Field(
         default_factory=dict,
         description="per crank-angle sample stream consumed by a block: frames, samples, "

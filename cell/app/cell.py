@@ -185,7 +185,8 @@ class Cell:
         with rt.lock:
             counts = rt.health()
             return {**supervision.assess(rt, self.live), "bus": self.bus,
-                    "runtime_running": self.live.running if self.live else False, **counts}
+                    "runtime_running": self.live.running if self.live else False,
+                    "undecodable": self.live.undecodable if self.live else 0, **counts}
 
     def frames_by_id(self) -> dict[tuple[int, bool], int]:
         """Frames received so far per ``(arbitration ID, extended)``, known or not."""

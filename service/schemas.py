@@ -53,6 +53,10 @@ class HealthOut(BaseModel):
     last_frame_time: float | None
     bus_time: float | None
     runtime_running: bool
+    conflicts: dict[str, int] = Field(
+        default_factory=dict,
+        description="frames of a simulator message beyond its cycle rate (a second sender on "
+                    "the bus), by message; /health is degraded and names it while it lasts")
     undecodable: int = Field(0, description="datagrams or frames received that could not be "
                                             "decoded (not a CAN frame at all), skipped")
     streams: dict[str, dict[str, Any]] = Field(

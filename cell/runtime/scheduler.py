@@ -31,6 +31,7 @@ from cell.core.errors import ConfigError, UnknownBlockError
 from cell.runtime.health import (FRAME_ERROR_KINDS, MAX_COUNTED_IDS, MAX_UNKNOWN_IDS, OTHER_IDS,
                                  HealthCounters)
 from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_streams
+from cell.runtime.senders import SenderWatch
 from cell.runtime.store import ChannelStore, Reading
 
 _EPS = 1e-9
@@ -149,6 +150,8 @@ class Runtime:
         # an input goes stale by the third MED tick after its frames stop
         self.store = ChannelStore(db, self.history_len, stale_floor=1.5 / self.rates.MED)
         self.counters = HealthCounters()
+        #: second senders of the simulator's messages, judged at MED ticks (cell.runtime.senders)
+        self.senders = SenderWatch(db.messages, self.counters)
         #: newest undecoded frame per message: frames are decoded when a tick or a reader
         #: needs their values, so the ten frames of a 100 Hz message between two 10 Hz
         #: ticks cost one decode, not ten
@@ -489,6 +492,7 @@ class Runtime:
 
     def _after_med_tick(self, t: float) -> None:
         self.store.record(t)
+        self.senders.at(t)
         for listener in self.tick_listeners:
             listener(t)
 
@@ -542,7 +546,9 @@ class Runtime:
     def health(self) -> dict[str, Any]:
         with self.lock:
             streams = {r.layout.name: r.tracker.counts.as_dict() for r in self._streams.values()}
-            return self.counters.report(self.now, self.last_frame_time, streams)
+            report = self.counters.report(self.now, self.last_frame_time, streams)
+            report["conflicts"] = self.senders.report()
+            return report
 
 
 __all__ = ["FRAME_ERROR_KINDS", "MAX_COUNTED_IDS", "MAX_UNKNOWN_IDS", "OTHER_IDS", "Rates", "Runtime"]

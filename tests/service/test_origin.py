@@ -5,7 +5,7 @@ WebSocket takes its token as a subprotocol, never in the query string."""
 import pytest
 from starlette.websockets import WebSocketDisconnect
 
-from service.security import Security, allowed_hosts, content_type_refusal
+from service.security import allowed_hosts, content_type_refusal
 from tests.helpers.client import LOCAL_URL
 
 from .test_security import GOOD, TOKEN, make, state_of

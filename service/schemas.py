@@ -53,6 +53,9 @@ class HealthOut(BaseModel):
     last_frame_time: float | None
     bus_time: float | None
     runtime_running: bool
+    simulator: dict[str, Any] | None = Field(
+        None, description="testcell up's simulator process: running, pid, restarts, the last "
+                          "exit (exit_code, signal) and what up does then (on_sim_exit)")
     conflicts: dict[str, int] = Field(
         default_factory=dict,
         description="frames of a simulator message beyond its cycle rate (a second sender on "

@@ -1,4 +1,4 @@
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 
 from ..deps import CellDep
 from ..schemas import HealthOut
@@ -7,9 +7,18 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/health", response_model=HealthOut)
-def health(cell: CellDep) -> HealthOut:
+def health(cell: CellDep, request: Request) -> HealthOut:
     """Status (``ok``, ``waiting`` or ``degraded`` with the reasons: bus silent or lost, the
-    engine tripped), frame rate, bad frames by kind, unknown frame IDs, block errors, outputs
-    withheld for not being finite, the time of the last frame, and the sample streams' order
-    and loss counts."""
-    return HealthOut(**cell.health())
+    engine tripped, the simulator process exited, a second sender on the bus), frame rate,
+    bad frames by kind, unknown frame IDs, block errors, outputs withheld for not being
+    finite, the time of the last frame, and the sample streams' order and loss counts."""
+    report = cell.health()
+    sim = getattr(request.app.state, "simulator", None)  # testcell up's supervised child
+    if sim is not None:
+        report["simulator"] = sim.status()
+        lost = sim.reasons()
+        if lost:
+            report["reasons"] = [*lost, *report["reasons"]]
+            if report["status"] in ("ok", "waiting"):  # a cell without its simulator is degraded
+                report["status"] = "degraded"
+    return HealthOut(**report)

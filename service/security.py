@@ -106,7 +106,8 @@ class Security:
 
 def allowed_hosts(host: str | None, env: Mapping[str, str] | None = None) -> tuple[str, ...]:
     """The ``Host`` names a cell serving on ``host`` answers to: ``host`` itself, the local
-    names, this machine's names when ``host`` is a wildcard (``0.0.0.0``, ``::``), and those
+    names, this machine's names and addresses when ``host`` is a wildcard (``0.0.0.0``,
+    ``::``), and those
     of ``TESTCELL_ALLOWED_HOSTS``."""
     env = os.environ if env is None else env
     names: list[str] = []
@@ -114,10 +115,19 @@ def allowed_hosts(host: str | None, env: Mapping[str, str] | None = None) -> tup
         h = host.strip()
         names.append(f"[{h}]" if ":" in h and not h.startswith("[") else h)
         if h in ("0.0.0.0", "::", "[::]"):
-            names += [socket.gethostname(), socket.getfqdn()]
+            names += [socket.gethostname(), socket.getfqdn(), *_own_addresses()]
     names += LOCAL_HOSTS
     names += [n.strip() for n in env.get(ALLOWED_HOSTS_ENV, "").split(",") if n.strip()]
     return tuple(dict.fromkeys(n.lower() for n in names if n))
+
+
+def _own_addresses() -> list[str]:
+    """This machine's addresses as its name resolves (``[...]`` around IPv6 ones)."""
+    try:
+        infos = socket.getaddrinfo(socket.gethostname(), None)
+    except OSError:
+        return []
+    return [f"[{i[4][0]}]" if i[0] == socket.AF_INET6 else i[4][0] for i in infos]
 
 
 def media_type(value: str | None) -> str:

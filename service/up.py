@@ -60,7 +60,10 @@ def _start_sim_process(settings: Settings, bus: str) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "cell", "--log-level", settings.log_level, "sim",
            *settings.sim_argv(bus), "--parent-pid", str(os.getpid())]
     log.info("starting simulator: %s", " ".join(cmd[2:]))
-    return subprocess.Popen(cmd)
+    # Ctrl-C in a terminal signals the whole process group: the simulator ignores SIGINT (set
+    # before the exec, so Python keeps it ignored) and up stops it itself, so that its
+    # supervisor never takes a Ctrl-C for a simulator that died
+    return subprocess.Popen(["/bin/sh", "-c", "trap '' INT; exec \"$@\"", "sh", *cmd])
 
 
 def _stop_cell(reason: str) -> None:

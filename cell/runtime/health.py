@@ -66,6 +66,9 @@ class HealthCounters:
         self.tick_seconds_max = 0.0
         #: per block: [wall seconds spent in step, steps]
         self.step_time: dict[str, list[float]] = {}
+        #: frames of a simulator message beyond its cycle rate (a second sender), by message
+        #: (counted by :class:`cell.runtime.senders.SenderWatch`)
+        self.conflicts: collections.Counter[str] = collections.Counter()
 
     # -- counting -------------------------------------------------------------------
     def count_decode_error(self, kind: str, key: tuple[int, bool] | None = None) -> None:
@@ -130,6 +133,7 @@ class HealthCounters:
             "streams": streams,
             "withheld": dict(self.withheld),
             "tick_overruns": self.tick_overruns,
+            "conflicts": dict(self.conflicts),
             "last_frame_time": last_frame_time,
             "bus_time": now,
         }

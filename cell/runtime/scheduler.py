@@ -546,9 +546,7 @@ class Runtime:
     def health(self) -> dict[str, Any]:
         with self.lock:
             streams = {r.layout.name: r.tracker.counts.as_dict() for r in self._streams.values()}
-            report = self.counters.report(self.now, self.last_frame_time, streams)
-            report["conflicts"] = self.senders.report()
-            return report
+            return self.counters.report(self.now, self.last_frame_time, streams)
 
 
 __all__ = ["FRAME_ERROR_KINDS", "MAX_COUNTED_IDS", "MAX_UNKNOWN_IDS", "OTHER_IDS", "Rates", "Runtime"]

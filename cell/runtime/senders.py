@@ -51,7 +51,8 @@ class SenderWatch:
         The DBC messages (cantools ``Message`` objects) of the cell.
     counters:
         The runtime's :class:`~cell.runtime.health.HealthCounters`: its ``frames_by_id`` (frames
-        per ``(arbitration ID, extended)``) is read at each window's end, never written.
+        per ``(arbitration ID, extended)``) is read at each window's end, and the conflicts
+        are counted into its ``conflicts``.
     """
 
     def __init__(self, messages: Any, counters: Any) -> None:
@@ -62,8 +63,6 @@ class SenderWatch:
         self._counters = counters
         self._seen: dict[tuple[int, bool], int] = {}
         self._start: float | None = None
-        #: frames beyond one sender's pace, by message name, since the start
-        self.conflicts: dict[str, int] = {}
         #: per message in conflict: its frames per cycle in the last window that showed it
         #: and that window's end (bus time)
         self.last: dict[str, tuple[float, float]] = {}
@@ -102,7 +101,7 @@ class SenderWatch:
             n = counts[key]
             if n >= MIN_FRAMES and c > CONFLICT_RATIO * pace:
                 extra = n - round(pace / cycle)
-                self.conflicts[name] = self.conflicts.get(name, 0) + max(1, extra)
+                self._counters.conflicts[name] += max(1, extra)
                 self.last[name] = (c / pace, t)
 
     def active(self, now: float | None) -> dict[str, float]:
@@ -119,9 +118,11 @@ class SenderWatch:
                 f"the simulator sends 1 ({self.conflicts[name]} extra frames so far)"
                 for name, ratio in sorted(self.active(now).items())]
 
-    def report(self) -> dict[str, int]:
-        """Extra frames by message since the start (``/health``'s ``conflicts``)."""
-        return dict(self.conflicts)
+    @property
+    def conflicts(self) -> dict[str, int]:
+        """Frames beyond one sender's pace, by message, since the start (``/health``'s
+        ``conflicts``)."""
+        return self._counters.conflicts
 
 
 __all__ = ["CONFLICT_RATIO", "HOLD_WINDOWS", "MIN_FRAMES", "MIN_PEERS", "SIM_NODE", "WINDOW_S",

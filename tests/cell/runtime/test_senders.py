@@ -116,7 +116,9 @@ def test_the_pace_follows_the_speed_and_only_the_doubled_message_conflicts(db, s
 
 
 def test_conflicts_are_no_longer_named_once_the_forger_stops(db):
-    w = senders.SenderWatch(db.messages, type("C", (), {"frames_by_id": {}})())
+    from cell.runtime.health import HealthCounters
+
+    w = senders.SenderWatch(db.messages, HealthCounters())
     w.last["ENGINE_STATUS"] = (2.0, 10.0)
     w.conflicts["ENGINE_STATUS"] = 10
     assert w.active(10.5) == {"ENGINE_STATUS": 2.0}

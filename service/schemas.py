@@ -103,7 +103,10 @@ class ErrorOut(BaseModel):
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorOut, "description": "Bad input (e.g. a script that does not compile)"},
     401: {"model": ErrorOut, "description": "The cell's token is needed (TESTCELL_TOKEN)"},
+    403: {"model": ErrorOut, "description": "A change from a foreign Origin (another site's page)"},
     404: {"model": ErrorOut, "description": "No such channel, block or script"},
     409: {"model": ErrorOut, "description": "Refused: conflicts with the cell's state"},
     413: {"model": ErrorOut, "description": "Request body or script over its limit"},
+    415: {"model": ErrorOut, "description": "A change whose Content-Type is not application/json "
+                                            "(a script's source may be text/plain)"},
 }

@@ -48,6 +48,9 @@ from cell.core.errors import ConfigError
 WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 #: Paths that never need a token (the page itself; it asks for the token in the browser).
 OPEN_PATHS = frozenset({"/"})
+#: Path prefixes that never need one either: the page's own script and style files (a
+#: browser sends no Authorization header for a ``<script src>``).
+OPEN_PREFIXES = ("/static/",)
 #: Hosts every cell answers to, whatever it binds to.
 LOCAL_HOSTS = ("localhost", "127.0.0.1", "[::1]")
 #: Further host names (comma-separated) the cell answers to, e.g. behind a proxy.
@@ -90,6 +93,8 @@ class Security:
 
     def needs_token(self, method: str, path: str) -> bool:
         if not self.token or path in OPEN_PATHS:
+            return False
+        if method.upper() == "GET" and path.startswith(OPEN_PREFIXES):
             return False
         return method.upper() in WRITE_METHODS or self.protect_reads
 

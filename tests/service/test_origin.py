@@ -131,3 +131,13 @@ def test_a_websocket_from_a_foreign_page_is_refused(db, tmp_path):
     assert refused.value.code == 1008 and "evil.example" in refused.value.reason
     with c.websocket_connect("/stream", headers=OWN) as ws:  # the cell's own page
         assert ws.receive_json()["type"] == "hello"
+
+
+def test_the_pages_own_files_load_without_the_token_but_nothing_else_does(db, tmp_path):
+    """A browser sends no Authorization header for ``<script src>``: with reads protected,
+    the page and its static files still load (and then ask for the token), the API does not."""
+    *_, c = make(db, tmp_path, token=TOKEN, protect_reads=True)
+    assert c.get("/").status_code == 200
+    assert c.get("/static/dashboard.js").status_code == 200
+    assert c.get("/channels").status_code == 401
+    assert c.get("/channels", headers=GOOD).status_code == 200

@@ -66,6 +66,9 @@ class HealthCounters:
         self.tick_seconds_max = 0.0
         #: per block: [wall seconds spent in step, steps]
         self.step_time: dict[str, list[float]] = {}
+        #: decoded bus values outside their signal's range or rate limit, by signal
+        #: (:mod:`cell.runtime.plausibility`)
+        self.implausible: collections.Counter[str] = collections.Counter()
         #: frames of a simulator message beyond its cycle rate (a second sender), by message
         #: (counted by :class:`cell.runtime.senders.SenderWatch`)
         self.conflicts: collections.Counter[str] = collections.Counter()
@@ -132,6 +135,7 @@ class HealthCounters:
             "block_errors": dict(self.block_errors),
             "streams": streams,
             "withheld": dict(self.withheld),
+            "implausible": dict(self.implausible),
             "tick_overruns": self.tick_overruns,
             "conflicts": dict(self.conflicts),
             "last_frame_time": last_frame_time,

@@ -9,9 +9,10 @@ router = APIRouter(tags=["health"])
 @router.get("/health", response_model=HealthOut)
 def health(cell: CellDep, request: Request) -> HealthOut:
     """Status (``ok``, ``waiting`` or ``degraded`` with the reasons: bus silent or lost, the
-    engine tripped, the simulator process exited, a second sender on the bus), frame rate,
-    bad frames by kind, unknown frame IDs, block errors, outputs withheld for not being
-    finite, the time of the last frame, and the sample streams' order and loss counts."""
+    engine tripped, a change applied but not saved, the simulator process exited, a second
+    sender on the bus), frame rate, bad frames by kind, unknown frame IDs, block errors,
+    outputs withheld for not being finite, implausible bus values by signal, the time of the
+    last frame, and the sample streams' order and loss counts."""
     report = cell.health()
     sim = getattr(request.app.state, "simulator", None)  # testcell up's supervised child
     if sim is not None:

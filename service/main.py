@@ -3,6 +3,7 @@
 from collections.abc import Callable
 
 from fastapi import APIRouter, FastAPI
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from cell import __version__
 from cell.app import load as load_cell_parts
@@ -43,6 +44,9 @@ def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
     security = security or (Security.from_settings(settings) if settings else Security())
     app.state.security = security
     app.add_middleware(SecurityMiddleware, security=security)
+    # outermost: a request for a host name that is not the cell's (DNS rebinding) gets 400
+    app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(security.allowed_hosts),
+                       www_redirect=False)
     errors.install(app)
     app.include_router(health.router)
     app.include_router(channels.router)

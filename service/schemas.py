@@ -94,6 +94,15 @@ class HealthOut(BaseModel):
     loop: LoopOut | None = Field(None, description="the live loop (null: an offline cell)")
     limits: dict[str, float] = Field(default_factory=dict,
                                      description="thresholds past which the status is degraded")
+    simulator: dict[str, Any] | None = Field(
+        None, description="testcell up's simulator process: running, pid, restarts, the last "
+                          "exit (exit_code, signal) and what up does then (on_sim_exit)")
+    conflicts: dict[str, int] = Field(
+        default_factory=dict,
+        description="frames of a simulator message beyond its cycle rate (a second sender on "
+                    "the bus), by message; /health is degraded and names it while it lasts")
+    undecodable: int = Field(0, description="datagrams or frames received that could not be "
+                                            "decoded (not a CAN frame at all), skipped")
     streams: dict[str, dict[str, Any]] = Field(
         default_factory=dict,
         description="per crank-angle sample stream consumed by a block: frames, samples, "
@@ -141,7 +150,10 @@ class ErrorOut(BaseModel):
 ERROR_RESPONSES: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorOut, "description": "Bad input (e.g. a script that does not compile)"},
     401: {"model": ErrorOut, "description": "The cell's token is needed (TESTCELL_TOKEN)"},
+    403: {"model": ErrorOut, "description": "A change from a foreign Origin (another site's page)"},
     404: {"model": ErrorOut, "description": "No such channel, block or script"},
     409: {"model": ErrorOut, "description": "Refused: conflicts with the cell's state"},
     413: {"model": ErrorOut, "description": "Request body or script over its limit"},
+    415: {"model": ErrorOut, "description": "A change whose Content-Type is not application/json "
+                                            "(a script's source may be text/plain)"},
 }

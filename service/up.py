@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import socket
 import subprocess
@@ -27,6 +28,8 @@ from cell.bus.interface import open_bus, resolve
 from cell.core import registry
 from cell.core.errors import ConfigError
 from cell.core.settings import Settings, add_sim_options
+
+from .simproc import EXIT_SIM_LOST, ON_EXIT, SimSupervisor
 
 log = logging.getLogger("testcell")
 
@@ -53,21 +56,20 @@ def _check_port_free(host: str, port: int) -> None:
 
 
 def _start_sim_process(settings: Settings, bus: str) -> subprocess.Popen:
+    # --parent-pid: the simulator watches this process and goes safe when it dies
     cmd = [sys.executable, "-m", "cell", "--log-level", settings.log_level, "sim",
-           *settings.sim_argv(bus)]
+           *settings.sim_argv(bus), "--parent-pid", str(os.getpid())]
     log.info("starting simulator: %s", " ".join(cmd[2:]))
-    return subprocess.Popen(cmd)
+    # Ctrl-C in a terminal signals the whole process group: the simulator ignores SIGINT (set
+    # before the exec, so Python keeps it ignored) and up stops it itself, so that its
+    # supervisor never takes a Ctrl-C for a simulator that died
+    return subprocess.Popen(["/bin/sh", "-c", "trap '' INT; exec \"$@\"", "sh", *cmd])
 
 
-def _stop_process(proc: subprocess.Popen | None) -> None:
-    if proc is None or proc.poll() is not None:
-        return
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(5)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
+def _stop_cell(reason: str) -> None:
+    """Stop ``up`` from the simulator's watcher: SIGTERM to this process, as ``kill`` would
+    (uvicorn shuts down gracefully; :func:`cmd_up` then exits with EXIT_SIM_LOST)."""
+    os.kill(os.getpid(), signal.SIGTERM)
 
 
 def _exit_on_sigterm(signum: int, frame: object) -> None:
@@ -95,7 +97,7 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
     store.restore(runtime)
     bus = open_bus(spec)
     live = None
-    sim_proc = None
+    supervisor = None
     sim_thread = None
     sim_bus = None
     sim_stop = threading.Event()
@@ -111,24 +113,36 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
                 )
                 sim_thread.start()
             else:
-                sim_proc = _start_sim_process(settings, str(spec))
+                supervisor = SimSupervisor(lambda: _start_sim_process(settings, str(spec)),
+                                           on_exit=getattr(args, "on_sim_exit", "restart"),
+                                           on_stop=_stop_cell).start()
         live = LiveCell(runtime, bus).start()
         cell = Cell(runtime=runtime, bus=str(spec), settings=settings, scripts=scripts,
                     tuning=store, live=live)
         log.info("testcell %s on %s; API on http://%s:%d (tuning file %s)",
                  __version__, spec, settings.host, settings.port, store.path)
-        serve(create_app(cell), host=settings.host, port=settings.port,
-              log_level=settings.log_level.lower())
+        app = create_app(cell)
+        app.state.simulator = supervisor  # /health and GET /simulator report it
+        try:
+            serve(app, host=settings.host, port=settings.port,
+                  log_level=settings.log_level.lower())
+        except SystemExit:
+            if supervisor is None or supervisor.failed is None:
+                raise
     finally:
         if live is not None:
             live.stop()  # before the bus closes, or its receive fails on a closed socket
         sim_stop.set()
-        _stop_process(sim_proc)
+        if supervisor is not None:
+            supervisor.stop()
         if sim_thread is not None:
             sim_thread.join(2)
         if sim_bus is not None:
             sim_bus.shutdown()
         bus.shutdown()
+    if supervisor is not None and supervisor.failed is not None:
+        print(f"up: {supervisor.failed}", file=sys.stderr)
+        return EXIT_SIM_LOST
     return 0
 
 
@@ -141,6 +155,9 @@ def add_arguments(up: argparse.ArgumentParser) -> None:
     up.add_argument("--host", default=None, help="API address (default 127.0.0.1)")
     up.add_argument("--port", type=_port, default=None, help="API port (default 8000)")
     up.add_argument("--no-sim", action="store_true", help="attach to an existing bus, no simulator")
+    up.add_argument("--on-sim-exit", choices=ON_EXIT, default="restart",
+                    help="when the simulator process exits: restart it with backoff (1 s, 2 s, "
+                         "... default) or stop the cell (up exits with status 3)")
     add_sim_options(up)
     up.add_argument("--state", default=None, type=Path,
                     help="tuning file (default $XDG_STATE_HOME/testcell/tuning.json)")

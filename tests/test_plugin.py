@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell import app
 from cell.core import registry
@@ -97,7 +97,7 @@ def test_observers_are_tuned_over_http_saved_and_restored(toy, tmp_path):
     assert scripts.names() == []  # seed 004's shipped scripts read another engine's frames
     sim = build_sim(settings, rt.db)
     Lockstep(sim, rt).run(5.0)
-    client = TestClient(create_app(Cell(runtime=rt, bus="none", tuning=store)))
+    client = local_client(create_app(Cell(runtime=rt, bus="none", tuning=store)))
     assert client.get("/filters").status_code == 404  # this cell has no filters
     listed = client.get("/observers").json()
     assert [b["name"] for b in listed] == ["toy"]

@@ -289,7 +289,8 @@ class Cell:
                 assessed["status"] = supervision.DEGRADED
             assessed["reasons"] += list(self.unsaved.values())
             out = {**assessed, "bus": self.bus, "unsaved": list(self.unsaved.values()),
-                   "runtime_running": self.live.running if self.live else False, **counts,
+                   "runtime_running": self.live.running if self.live else False,
+                   "undecodable": self.live.undecodable if self.live else 0, **counts,
                    "loop": loop, "limits": dict(supervision.LIMITS)}
             self._seen["health"] = out
             return out

@@ -157,6 +157,11 @@ class LiveCell:
             self._thread.join(timeout)
 
     @property
+    def undecodable(self) -> int:
+        """Datagrams or frames the bus could not decode and skipped (:class:`CellBus`)."""
+        return getattr(self.bus, "undecodable", 0)
+
+    @property
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 

@@ -111,12 +111,32 @@ def resolve(spec: str | None = None, env: dict[str, str] | None = None) -> BusSp
     return BusSpec(iface, channel)
 
 
+def is_undecodable(exc: BaseException) -> bool:
+    """Whether a receive error is about one datagram or frame, not about the bus.
+
+    python-can's udp_multicast bus raises :class:`can.CanOperationError` when a datagram is
+    not a msgpack-packed frame ("could not unpack received message", raised from the
+    decoder's error) or its ancillary data is odd; the socket itself is fine and the next
+    datagram may be good. A bus that went away (socket closed, interface down) raises it
+    *from* an :class:`OSError` (or an :class:`OSError` itself): that is bus loss.
+    """
+    if not isinstance(exc, can.CanOperationError) or isinstance(exc, can.CanTimeoutError):
+        return False
+    cause = exc.__cause__
+    return not isinstance(cause, OSError)
+
+
 class CellBus:
-    """A python-can bus that drops the echoes of its own frames.
+    """A python-can bus that drops the echoes of its own frames and skips what it cannot decode.
 
     udp_multicast delivers every datagram to every member of the group, the sender
     included. Frames this bus sent are remembered for a short while and dropped when they
     come back.
+
+    A datagram or frame that cannot be decoded (:func:`is_undecodable`: anyone on the group
+    can send 21 bytes of garbage) never raises out of :meth:`recv`: it is counted in
+    :attr:`undecodable` (the last error in :attr:`last_undecodable`) and the receive goes on
+    to the next frame within the same timeout. Loss of the bus still raises.
     """
 
     ECHO_WINDOW_S = 2.0
@@ -129,6 +149,10 @@ class CellBus:
         self._sent: collections.deque[tuple[float, tuple]] = collections.deque()
         self._pending: collections.Counter = collections.Counter()
         self.echoes_dropped = 0
+        #: datagrams or frames received that could not be decoded, skipped
+        self.undecodable = 0
+        #: the last of those errors, as text (``None``: none yet)
+        self.last_undecodable: str | None = None
 
     @staticmethod
     def _key(msg: can.Message) -> tuple:
@@ -165,9 +189,26 @@ class CellBus:
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         deadline = None if timeout is None else time.monotonic() + timeout
+        skipped = 0
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-            msg = self.bus.recv(remaining)
+            try:
+                msg = self.bus.recv(remaining)
+            except can.CanOperationError as exc:
+                if not is_undecodable(exc):
+                    raise
+                self.undecodable += 1
+                skipped += 1
+                cause = exc.__cause__
+                self.last_undecodable = f"{exc}: {cause}" if cause is not None else str(exc)
+                if self.undecodable in (1, 10, 100) or self.undecodable % 10_000 == 0:
+                    log.warning("skipped %d undecodable datagram(s) on %s; last: %s",
+                                self.undecodable, self.spec, self.last_undecodable)
+                # what is already queued is still read after the deadline (a zero timeout
+                # drains the socket), but a flood of garbage cannot hold the caller for ever
+                if deadline is not None and time.monotonic() >= deadline and skipped >= 64:
+                    return None
+                continue
             if msg is None or not self._drop_echoes:
                 return msg
             key = self._key(msg)

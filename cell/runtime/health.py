@@ -168,6 +168,9 @@ class HealthCounters:
         #: decoded bus values outside their signal's range or rate limit, by signal
         #: (:mod:`cell.runtime.plausibility`)
         self.implausible: collections.Counter[str] = collections.Counter()
+        #: frames of a simulator message beyond its cycle rate (a second sender), by message
+        #: (counted by :class:`cell.runtime.senders.SenderWatch`)
+        self.conflicts: collections.Counter[str] = collections.Counter()
 
     # -- counting -------------------------------------------------------------------
     def count_decode_error(self, kind: str, key: tuple[int, bool] | None = None) -> None:
@@ -261,6 +264,7 @@ class HealthCounters:
                             "outages": dict(self.gaps.outages)},
             "listener_errors": dict(self.listener_errors),
             "encode_errors": dict(self.encode_errors),
+            "conflicts": dict(self.conflicts),
             "last_frame_time": last_frame_time,
             "bus_time": now,
         }

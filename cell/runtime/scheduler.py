@@ -36,6 +36,7 @@ from cell.runtime.health import (FRAME_ERROR_KINDS, MAX_COUNTED_IDS, MAX_UNKNOWN
 from cell.runtime.channel_params import check_channel_params
 from cell.runtime.plausibility import Plausibility
 from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_streams
+from cell.runtime.senders import SenderWatch
 from cell.runtime.store import ChannelStore, Reading
 
 _EPS = 1e-9
@@ -180,6 +181,8 @@ class Runtime:
         self.faults = BlockFaults()
         #: range and rate checks of the decoded bus values (:mod:`cell.runtime.plausibility`)
         self.plausibility = Plausibility(db.messages, self.counters.implausible)
+        #: second senders of the simulator's messages, judged at MED ticks (cell.runtime.senders)
+        self.senders = SenderWatch(db.messages, self.counters)
         #: newest undecoded frame per message: frames are decoded when a tick or a reader
         #: needs their values, so the ten frames of a 100 Hz message between two 10 Hz
         #: ticks cost one decode, not ten
@@ -573,6 +576,7 @@ class Runtime:
 
     def _after_med_tick(self, t: float) -> None:
         self.store.record(t)
+        self.senders.at(t)
         for listener in self.tick_listeners:
             try:
                 listener(t)

@@ -91,6 +91,7 @@ def assess(runtime: Runtime, live: Any = None) -> dict[str, Any]:
             silent = f" for {now - last:.1f} s" if last is not None and now is not None else ""
             reasons.append(f"bus silent: 0 frames/s{silent} (last frame at bus time {last:.3f} s)"
                            if last is not None else "bus silent: 0 frames/s")
+        reasons += runtime.senders.reasons(h["bus_time"])  # a forger on the bus
         if tripped is not None:
             reasons.append(f"engine tripped: {tripped['reason']} (since bus time "
                            f"{tripped['since']:.1f} s); reset with POST /engine/reset")

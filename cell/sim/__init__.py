@@ -196,6 +196,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "instead of using a bus")
     parser.add_argument("--list-engines", action="store_true",
                         help="list the engine profiles and their duty cycles, then exit")
+    parser.add_argument("--parent-pid", type=int, default=None, metavar="PID",
+                        help="the process commanding this simulator (default: its parent); "
+                             "when it dies the plant goes safe, reports it for 2 s and exits")
 
 
 def _interrupt(signum: int, frame: object) -> None:

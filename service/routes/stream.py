@@ -2,7 +2,9 @@
 
 WebSocket protocol (JSON text messages)
 ---------------------------------------
-Connect to ``/stream`` (optionally ``/stream?channels=EXH_BP_*,ENGINE_SPEED``), then send::
+Connect to ``/stream`` (optionally ``/stream?channels=EXH_BP_*,ENGINE_SPEED``; with reads
+protected, offer the token as the subprotocol ``token.<TOKEN>``, which is echoed back; a
+``?token=`` in the URL is refused, see :mod:`service.security`), then send::
 
     {"subscribe": ["EXH_BP_R", "EXH_BP_*_Kalman"]}     add names or glob patterns
     {"unsubscribe": ["EXH_BP_*_Kalman"]}               remove patterns given before
@@ -40,6 +42,7 @@ from fastapi import APIRouter, HTTPException, Query, Request, WebSocket, WebSock
 from fastapi.responses import StreamingResponse
 
 from .. import stream as _stream
+from ..security import websocket_token_protocol
 from ..stream import Client, StreamHub, SubscriptionError, TooManyClients, match, parse_patterns
 
 router = APIRouter(tags=["stream"])
@@ -68,7 +71,8 @@ def _snapshot(hub: StreamHub, client: Client) -> dict[str, Any]:
 @router.websocket("/stream")
 async def stream(ws: WebSocket) -> None:
     hub = _hub(ws.app)
-    await ws.accept()
+    # a browser drops a connection whose offered subprotocol is not echoed back
+    await ws.accept(subprotocol=websocket_token_protocol(ws))
     try:
         client = hub.join(())
     except TooManyClients as exc:

@@ -14,13 +14,23 @@ const TC = window.TC = {
 const $ = id => document.getElementById(id);
 const esc = s => String(s).replace(/[&<>"]/g, c => ({"&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;"}[c]));
 
-async function api(method, url, body, type) {
+// The cell's token, when it has one (TESTCELL_TOKEN): asked for once, kept for this tab.
+const TOKEN_KEY = "testcell-token";
+const token = () => sessionStorage.getItem(TOKEN_KEY);
+
+async function api(method, url, body, type, retried) {
   const init = {method, headers: {}};
-  if (body !== undefined) {
+  if (method !== "GET") {
+    // the cell refuses a change that is not JSON (415), except a script's text/plain source
     init.headers["Content-Type"] = type || "application/json";
-    init.body = type ? body : JSON.stringify(body);
   }
+  if (body !== undefined) init.body = type ? body : JSON.stringify(body);
+  if (token()) init.headers["Authorization"] = `Bearer ${token()}`;
   const r = await fetch(url, init);
+  if (r.status === 401 && !retried) {
+    const t = prompt("This cell needs its token (TESTCELL_TOKEN):");
+    if (t) { sessionStorage.setItem(TOKEN_KEY, t.trim()); return api(method, url, body, type, true); }
+  }
   const text = await r.text();
   let data = text;
   try { data = JSON.parse(text); } catch (e) { /* plain text */ }
@@ -218,7 +228,9 @@ function frame() {
 
 // -- the stream ----------------------------------------------------------------------------
 function connect() {
-  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/stream`);
+  // the token goes in a subprotocol (token.<TOKEN>), never in the URL: access logs record URLs
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/stream`,
+                           token() ? [`token.${token()}`] : []);
   TC.ws = ws;
   ws.onopen = () => { ws.send(JSON.stringify({subscribe: ["*"]})); };
   ws.onmessage = ev => {
@@ -238,7 +250,14 @@ function connect() {
     }
     streamStatus("ok");
   };
-  ws.onclose = () => { streamStatus("closed"); setTimeout(connect, 1000); };
+  ws.onclose = ev => {
+    if (ev.code === 1008 && !TC.askedToken) {  // refused: reads need the cell's token
+      TC.askedToken = true;
+      const t = prompt(`The stream was refused (${ev.reason}). The cell's token:`);
+      if (t) sessionStorage.setItem(TOKEN_KEY, t.trim());
+    }
+    streamStatus("closed"); setTimeout(connect, 1000);
+  };
 }
 
 function streamStatus(state) {

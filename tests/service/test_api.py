@@ -3,7 +3,7 @@
 import json
 
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.app.cell import Cell
 from cell.estimators.backpressure import native_filters
@@ -29,7 +29,7 @@ def cell(db, tmp_path):
 
 @pytest.fixture
 def client(cell):
-    return TestClient(create_app(cell))
+    return local_client(create_app(cell))
 
 
 def test_health_counts_frames_and_errors(client, cell, db):
@@ -140,7 +140,7 @@ def test_tuning_survives_a_restart(db, tmp_path):
     rt = Runtime(db, native_filters())
     store = TuningStore(path)
     store.load()
-    c = TestClient(create_app(Cell(runtime=rt, tuning=store)))
+    c = local_client(create_app(Cell(runtime=rt, tuning=store)))
     assert c.patch("/filters/EXH_BP_L_Kalman", json={"Q": 4e-6}).status_code == 200
     assert c.patch("/filters/EXH_BP_R_MAF", json={"samples": 50}).status_code == 200
     assert [p.name for p in path.parent.iterdir()] == ["tuning.json"]  # no temp files left
@@ -193,7 +193,7 @@ def test_controllers_are_tunable_and_keep_off_the_bus_until_enabled(db, tmp_path
 
     rt = Runtime(db, [*native_filters(), *controllers("kalman")])
     store = TuningStore(tmp_path / "t.json")
-    c = TestClient(create_app(Cell(runtime=rt, tuning=store)))
+    c = local_client(create_app(Cell(runtime=rt, tuning=store)))
 
     def run(t0, t1):
         t = t0
@@ -240,7 +240,7 @@ def test_autotune_estimates_from_history_and_applies_only_on_request(db, tmp_pat
         rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": y, "EXH_BP_R": y}, i * 0.01))
     rt.advance(299.99)
     store = TuningStore(tmp_path / "t.json")
-    c = TestClient(create_app(Cell(runtime=rt, tuning=store)))
+    c = local_client(create_app(Cell(runtime=rt, tuning=store)))
 
     r = c.post("/filters/EXH_BP_R_Kalman/autotune", json={"minutes": 5})
     assert r.status_code == 200, r.text
@@ -268,7 +268,7 @@ def test_restart_restores_controller_tuning_but_never_enables_the_loop(db, tmp_p
     path = tmp_path / "tuning.json"
     rt = Runtime(db, controllers("kalman"))
     store = TuningStore(path)
-    c = TestClient(create_app(Cell(runtime=rt, tuning=store)))
+    c = local_client(create_app(Cell(runtime=rt, tuning=store)))
     assert c.patch("/controllers/PI_R", json={"enable": True, "kp": 0.004}).status_code == 200
     rt2 = Runtime(db, controllers("kalman"))
     store2 = TuningStore(path)

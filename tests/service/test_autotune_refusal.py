@@ -3,7 +3,7 @@ little data. It answers 409 naming why, and the filter and the tuning file stay 
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.app.cell import Cell
 from cell.estimators.backpressure import native_filters
@@ -26,7 +26,7 @@ def cell_with(db, tmp_path, seconds, walk_sd):
     rt.advance((n - 1) * 0.01)
     store = TuningStore(tmp_path / "t.json")
     store.record("filters", "EXH_BP_R_Kalman", {"Q": 1e-6, "R": 1e-4})
-    return rt, store, TestClient(create_app(Cell(runtime=rt, tuning=store)))
+    return rt, store, local_client(create_app(Cell(runtime=rt, tuning=store)))
 
 
 @pytest.mark.parametrize("seconds, walk_sd, why", [

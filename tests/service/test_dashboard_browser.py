@@ -216,6 +216,53 @@ def _card(page, name):
     return page.locator(f'.block[data-block="{name}"]')
 
 
+def test_with_reads_protected_the_page_streams_with_its_token_in_a_subprotocol(chromium, db):
+    """The token the page keeps for its tab goes with every request and as the WebSocket's
+    subprotocol ``token.<TOKEN>``, never in the stream's URL."""
+    from cell.app.cell import Cell
+    from cell.estimators.backpressure import native_filters
+    from cell.runtime.scheduler import Runtime
+    from service.main import create_app
+    from service.security import Security
+
+    from .served import served
+
+    token = "page-token-0123"
+    rt = Runtime(db, native_filters())
+    t = [0.0]
+
+    def feed(seconds):
+        end = t[0] + seconds
+        while t[0] < end - 1e-9:
+            rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 680.0, "EXH_BP_R": 681.0}, t[0]))
+            t[0] = round(t[0] + 0.01, 6)
+        rt.advance(t[0])
+
+    feed(2.0)
+    context = chromium("token-profile")
+    context.add_init_script(f"sessionStorage.setItem('testcell-token', '{token}')")
+    app = create_app(Cell(runtime=rt, bus="virtual:test"), Security(token=token, protect_reads=True))
+    with served(app) as url:
+        try:
+            assert httpx.get(url + "/channels", timeout=5).status_code == 401  # reads need it
+            page = context.new_page()
+            errors = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(url + "/")
+            page.wait_for_function("window.TC && TC.ready && TC.ws && TC.ws.readyState === 1",
+                                   timeout=30_000)
+            assert page.evaluate("TC.ws.protocol") == f"token.{token}"
+            assert "token" not in page.evaluate("TC.ws.url")
+            for _ in range(100):
+                feed(0.2)
+                if page.evaluate("TC.messages") > 2:
+                    break
+                time.sleep(0.05)
+            assert page.evaluate("TC.messages") > 2 and errors == []
+        finally:
+            context.close()
+
+
 def test_changing_Q_on_the_page_reaches_the_filter_and_its_next_values(diesel):
     url, cell, p = diesel
     page = p.page

@@ -9,7 +9,7 @@
 
 
 import can
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.core import registry
 from cell.app.cell import Cell
@@ -33,7 +33,7 @@ def make(db, tmp_path):
     rt = Runtime(db, native_filters())
     store = TuningStore(tmp_path / "tuning.json")
     mgr = ScriptManager(rt, store)
-    return rt, mgr, TestClient(create_app(Cell(runtime=rt, tuning=store, scripts=mgr)))
+    return rt, mgr, local_client(create_app(Cell(runtime=rt, tuning=store, scripts=mgr)))
 
 
 def test_script_reading_an_unknown_input_is_accepted_with_the_input_named(db, tmp_path):
@@ -81,7 +81,7 @@ def test_trip_is_shown_and_reset_over_http_and_by_scenario_frame(db, tmp_path):
                               environ={}).for_simulator()
     sim = build_sim(settings, db)
     rt = Runtime(db, native_filters())
-    c = TestClient(create_app(Cell(runtime=rt)))
+    c = local_client(create_app(Cell(runtime=rt)))
 
     def run(seconds):
         for _ in range(round(seconds / sim.dt)):
@@ -101,7 +101,7 @@ def test_trip_is_shown_and_reset_over_http_and_by_scenario_frame(db, tmp_path):
     sim.receive(db.encode("VALVE_DEMAND", {"VALVE_DEMAND_L": 100.0, "VALVE_DEMAND_R": 100.0}))
     run(10.0)
     assert c.get("/health").json()["trip"] is not None  # a trip holds until reset
-    r = c.post("/engine/reset")
+    r = c.post("/engine/reset", json={})
     assert r.status_code == 200 and r.json()["sent"] == {"ENGINE_RESET": 1}
     run(2.0)
     h = c.get("/health").json()
@@ -120,5 +120,5 @@ def test_trip_is_shown_and_reset_over_http_and_by_scenario_frame(db, tmp_path):
     run(2.0)
     assert c.get("/health").json()["trip"] is None
     # the next HTTP reset continues from the counter seen on the bus, so it is a new value
-    assert c.post("/engine/reset").json()["sent"] == {"ENGINE_RESET": 8}
+    assert c.post("/engine/reset", json={}).json()["sent"] == {"ENGINE_RESET": 8}
     assert registry  # the engine profile came from the registry

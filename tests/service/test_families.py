@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.app.cell import Cell
 from cell.core import registry
@@ -18,7 +18,7 @@ STATIC = Path(__file__).resolve().parents[2] / "service" / "static"
 
 def test_families_lists_every_registered_family_with_the_cells_blocks(db):
     c = Cell(runtime=Runtime(db, native_filters()))
-    client = TestClient(create_app(c))
+    client = local_client(create_app(c))
     r = client.get("/families")
     assert r.status_code == 200
     fams = {f["name"]: f for f in r.json()}
@@ -36,14 +36,14 @@ def test_a_plugins_family_is_listed_and_gets_its_resource(db, monkeypatch):
     registry.family(BlockFamily("probe", "probes", "test probes", ({"samples": 3},)))
     blocks = native_filters()
     blocks[0].family = "probe"
-    client = TestClient(create_app(Cell(runtime=Runtime(db, blocks))))
+    client = local_client(create_app(Cell(runtime=Runtime(db, blocks))))
     probe = next(f for f in client.get("/families").json() if f["name"] == "probe")
     assert probe["section"] == "probes" and probe["blocks"] == [blocks[0].name]
     assert [b["name"] for b in client.get("/probes").json()] == [blocks[0].name]
 
 
 def test_families_is_documented_in_the_openapi(db):
-    spec = TestClient(create_app(Cell(runtime=Runtime(db)))).get("/openapi.json").json()
+    spec = local_client(create_app(Cell(runtime=Runtime(db)))).get("/openapi.json").json()
     op = spec["paths"]["/families"]["get"]
     assert list(spec["paths"]["/families"]) == ["get"]  # read only
     schema = op["responses"]["200"]["content"]["application/json"]["schema"]

@@ -8,7 +8,7 @@ import time
 
 import can
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.runtime.blocks import Block
 from cell.app.cell import Cell
@@ -64,7 +64,7 @@ def fed(db):
 
 def test_metrics_count_frames_errors_overruns_and_step_times(fed):
     rt, n, exh = fed
-    client = TestClient(create_app(Cell(runtime=rt, bus="virtual:test")))
+    client = local_client(create_app(Cell(runtime=rt, bus="virtual:test")))
     r = client.get("/metrics")
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain; version=0.0.4")
     m = parse(r.text)
@@ -89,7 +89,7 @@ def test_metrics_count_frames_errors_overruns_and_step_times(fed):
 
 def test_frames_per_second_by_id_over_the_last_second_of_bus_time(db):
     rt = Runtime(db, native_filters())
-    client = TestClient(create_app(Cell(runtime=rt, bus="virtual:test")))
+    client = local_client(create_app(Cell(runtime=rt, bus="virtual:test")))
     t = 0.0
     while t < 4.0 - 1e-9:  # EXH_BP at 100 Hz, ENGINE_1 at 20 Hz
         rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 680.0, "EXH_BP_R": 680.0}, t))
@@ -111,7 +111,7 @@ def _engine(db, t):
 
 def test_websocket_clients_are_counted_while_connected(db):
     rt = Runtime(db, native_filters())
-    client = TestClient(create_app(Cell(runtime=rt, bus="virtual:test")))
+    client = local_client(create_app(Cell(runtime=rt, bus="virtual:test")))
     with client.websocket_connect("/stream?channels=EXH_BP_R") as ws:
         assert ws.receive_json()["type"] == "hello"
         assert ws.receive_json()["type"] == "subscribed"
@@ -131,7 +131,7 @@ def test_a_bus_of_random_ids_keeps_the_counts_bounded(db, monkeypatch):
     for k in range(40):  # 40 distinct unknown IDs
         rt.ingest(can.Message(timestamp=k * 0.01, arbitration_id=0x10000 + k, data=b"", is_extended_id=True))
     assert len(rt.frames_by_id) == 9
-    m = parse(TestClient(create_app(Cell(runtime=rt, bus="virtual:test"))).get("/metrics").text)
+    m = parse(local_client(create_app(Cell(runtime=rt, bus="virtual:test"))).get("/metrics").text)
     assert m['testcell_frames_total{id="other",message="unknown"}'] == 32
     assert m['testcell_frames_total{id="0x00010000",message="unknown"}'] == 1
     assert m['testcell_decode_errors_total{kind="unknown_id"}'] == 40

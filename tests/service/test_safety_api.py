@@ -6,7 +6,7 @@ import json
 
 import can
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.app.cell import Cell
 from cell.app.tuning import TuningStore
@@ -25,7 +25,7 @@ def make(db, state, blocks):
     store = TuningStore(state)
     store.load()
     cell = Cell(runtime=rt, bus="virtual:test", tuning=store)
-    return rt, cell, TestClient(create_app(cell))
+    return rt, cell, local_client(create_app(cell))
 
 
 @pytest.fixture

@@ -4,7 +4,7 @@ import json
 import math
 
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.app.cell import Cell
 from cell.estimators.backpressure import native_filters
@@ -37,7 +37,7 @@ def make(db, tmp_path):
     mgr = ScriptManager(rt, store)
     assert mgr.load_defaults() == []
     store.restore(rt)
-    return rt, mgr, store, TestClient(create_app(Cell(runtime=rt, tuning=store, scripts=mgr)))
+    return rt, mgr, store, local_client(create_app(Cell(runtime=rt, tuning=store, scripts=mgr)))
 
 
 def feed(rt, db, t0, t1, value=lambda t: 680.0 + 30 * math.sin(t)):

@@ -6,7 +6,7 @@ import json
 
 import pytest
 from fastapi import FastAPI, WebSocket
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.app.cli import main
 from cell.app.cell import Cell
@@ -38,7 +38,7 @@ def make(db, tmp_path, **security):
     mgr.load_defaults()
     feed(rt, db, 0.0, 5.0)
     cell = Cell(runtime=rt, tuning=store, scripts=mgr)
-    return rt, store, mgr, TestClient(create_app(cell, Security(**security)))
+    return rt, store, mgr, local_client(create_app(cell, Security(**security)))
 
 
 def state_of(rt, store, mgr):
@@ -55,7 +55,7 @@ WRITES = [
     ("patch", "/scripts/kalman.fdv", {"json": {"constants": {"Q_EXH_BP_R": 4e-6}}}),
     ("delete", "/scripts/maf.fdv", {}),
     ("post", "/filters/EXH_BP_R_Kalman/autotune", {"json": {"minutes": 1}}),
-    ("post", "/engine/reset", {}),
+    ("post", "/engine/reset", {"json": {}}),
 ]
 
 
@@ -155,7 +155,7 @@ def test_websocket_commands_need_the_token():
         await websocket.send_json({"allowed": websocket_may_command(websocket, security, command)})
         await websocket.close()
 
-    c = TestClient(app)
+    c = local_client(app)
     for headers, command, allowed in (({}, {"cmd": "x"}, False),
                                       ({}, {"cmd": "x", "token": "wrong"}, False),
                                       ({}, {"cmd": "x", "token": TOKEN}, True),
@@ -178,11 +178,15 @@ def test_websocket_handshake_needs_the_token_when_reads_are_protected(db, tmp_pa
         await websocket.close()
 
     app.add_api_websocket_route("/hello", hello)
-    c = TestClient(app)
+    c = local_client(app)
     with pytest.raises(WebSocketDisconnect):
         with c.websocket_connect("/hello") as w:
             w.receive_json()
-    for kw in ({"headers": GOOD}, {}):
-        url = "/hello" if kw else f"/hello?token={TOKEN}"
-        with c.websocket_connect(url, **kw) as w:
+    for kw in ({"headers": GOOD}, {"subprotocols": [f"token.{TOKEN}"]}):
+        with c.websocket_connect("/hello", **kw) as w:
             assert w.receive_json() == {"hello": True}
+    for kw in ({"subprotocols": ["token.wrong"]}, {"headers": BAD}):
+        with pytest.raises(WebSocketDisconnect) as refused:
+            with c.websocket_connect("/hello", **kw) as w:
+                w.receive_json()
+        assert refused.value.code == 1008 and "token.<TOKEN>" in refused.value.reason

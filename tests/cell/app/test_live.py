@@ -11,6 +11,7 @@ from cell.bus.interface import BusSpec, CellBus, open_bus
 from cell.estimators.backpressure import native_filters
 from cell.app.live import Backoff, LiveCell
 from cell.runtime.scheduler import Runtime
+from tests.helpers.buses import NOT_ROUTED, private_bus, private_group, routed_over_loopback
 
 
 def wait(cond, timeout=10.0):
@@ -108,3 +109,39 @@ def test_bus_going_away_is_reopened_with_backoff_and_logged_once_per_change(db, 
     silences = sum("inputs turn stale" in m for m in msgs)
     assert silences >= 1 and sum("frames again" in m for m in msgs) == silences, msgs
     assert len(msgs) == 2 + 2 * silences, msgs
+
+
+@pytest.mark.skipif(not routed_over_loopback(), reason=NOT_ROUTED)
+def test_a_garbage_datagram_is_counted_and_the_loop_runs_on(db):
+    """21 bytes of non-msgpack on the group used to make python-can's receive raise, which
+    the loop took for a lost bus ("bus lost", reopen, "bus silent" for ever)."""
+    import socket
+
+    from cell.app.cell import Cell
+
+    group, port = private_group()
+    rt = Runtime(db, native_filters())
+    bus, tx = open_bus(private_bus()), open_bus(private_bus())
+    live = LiveCell(rt, bus)
+    cell = Cell(runtime=rt, bus=private_bus(), live=live)
+    t0 = time.time()
+    live.start()
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+            for i in range(60):
+                if i % 20 == 0:
+                    s.sendto(b"\xc1" * 21, (group, port))
+                tx.send(db.encode("EXH_BP", {"EXH_BP_L": 600.0, "EXH_BP_R": 600.0 + i},
+                                  time.time() - t0))
+                time.sleep(0.005)
+        assert wait(lambda: live.undecodable == 3 and rt.channels.get("EXH_BP_R") is not None
+                    and rt.channels["EXH_BP_R"].value == 659.0)
+        health = cell.health()
+        assert health["undecodable"] == 3
+        assert live.running and live.bus_problem is None and live.reconnects == 0
+        assert not any("lost" in r for r in health["reasons"]), health["reasons"]
+    finally:
+        live.stop()
+        bus.shutdown()
+        tx.shutdown()

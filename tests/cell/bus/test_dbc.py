@@ -95,11 +95,10 @@ def user_extra(request, tmp_path):
 
 
 def test_user_frames_decode_into_channels_and_feed_a_filter(user_extra, clean_registry, tmp_path):
-    from fastapi.testclient import TestClient
-
     from cell.app.cell import Cell
     from cell.app.tuning import TuningStore
     from service.main import create_app
+    from tests.helpers.client import local_client
 
     db = load(user_extra)
     assert db.files[0] == default_dbc_path() and db.files[-1].name == "user.dbc"
@@ -118,7 +117,7 @@ def test_user_frames_decode_into_channels_and_feed_a_filter(user_extra, clean_re
 
     store = TuningStore(tmp_path / "tuning.json")
     store.load()
-    client = TestClient(create_app(Cell(runtime=rt, bus="virtual:test", tuning=store)))
+    client = local_client(create_app(Cell(runtime=rt, bus="virtual:test", tuning=store)))
     listed = {c["name"]: c for c in client.get("/channels").json()}
     assert listed["ECU_ENGINE_SPEED"]["value"] == 1500.0 and listed["ECU_ENGINE_SPEED"]["unit"] == "rpm"
 

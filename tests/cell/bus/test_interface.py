@@ -101,3 +101,75 @@ def test_socketcan_vcan0_round_trip():
     finally:
         a.shutdown()
         b.shutdown()
+
+
+# -- undecodable datagrams --------------------------------------------------------------------
+def _garbage(n: int = 1) -> None:
+    """``n`` datagrams of 21 bytes that are not msgpack, sent to this process's private group."""
+    import socket
+
+    from tests.helpers.buses import private_group
+
+    group, port = private_group()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+        for _ in range(n):
+            s.sendto(b"\xc1" * 21, (group, port))  # 0xc1 is never used by msgpack
+
+
+@pytest.mark.skipif(not routed_over_loopback(), reason=NOT_ROUTED)
+def test_python_can_udp_multicast_raises_on_a_garbage_datagram():
+    """The failure the wrapper exists for: python-can's own bus raises on 21 bytes of garbage."""
+    from tests.helpers.buses import private_group
+
+    group, port = private_group()
+    raw = can.Bus(interface="udp_multicast", channel=group, port=port)
+    try:
+        _garbage()
+        with pytest.raises(can.CanOperationError, match="unpack"):
+            raw.recv(2.0)
+    finally:
+        raw.shutdown()
+
+
+@pytest.mark.skipif(not routed_over_loopback(), reason=NOT_ROUTED)
+def test_a_garbage_datagram_is_counted_and_skipped_on_a_real_bus():
+    a, b = open_bus(private_bus()), open_bus(private_bus())
+    try:
+        _garbage(3)
+        msg = can.Message(arbitration_id=0x211, data=b"\x01\x02\x03", is_extended_id=False)
+        a.send(msg)
+        got = b.recv(2.0)  # the garbage came first; the good frame is returned
+        assert got is not None and got.arbitration_id == 0x211 and bytes(got.data) == b"\x01\x02\x03"
+        assert b.undecodable == 3
+        assert "could not unpack" in b.last_undecodable
+        # garbage alone: the receive honours its timeout and answers None
+        _garbage()
+        assert b.recv(0.3) is None and b.undecodable == 4
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+@pytest.mark.skipif(not routed_over_loopback(), reason=NOT_ROUTED)
+def test_a_closed_socket_still_raises():
+    b = open_bus(private_bus())
+    b.bus._multicast._socket.close()  # the bus goes away under the receiver
+    try:
+        with pytest.raises((can.CanOperationError, OSError, ValueError)):
+            b.recv(0.2)
+        assert b.undecodable == 0
+    finally:
+        b.shutdown()
+
+
+def test_only_receive_errors_not_caused_by_the_socket_are_undecodable():
+    unpack = can.CanOperationError("could not unpack received message")
+    unpack.__cause__ = ValueError("unpack(b) received extra data")
+    lost = can.CanOperationError("Failed to wait for IP/UDP socket: [Errno 9] Bad file descriptor")
+    lost.__cause__ = OSError(9, "Bad file descriptor")
+    assert cellbus.is_undecodable(unpack)
+    assert not cellbus.is_undecodable(lost)
+    assert not cellbus.is_undecodable(OSError("down"))
+    assert not cellbus.is_undecodable(can.CanTimeoutError())

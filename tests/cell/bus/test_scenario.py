@@ -6,7 +6,7 @@ import uuid
 from pathlib import Path
 
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.app import cli
 from cell.bus.interface import open_bus
@@ -101,7 +101,7 @@ def test_the_cli_refuses_an_unknown_key_or_a_value_out_of_range(capsys):
 
 def test_post_scenario_queues_the_frame_and_refuses_bad_bodies(db):
     rt = Runtime(db)
-    client = TestClient(create_app(Cell(runtime=rt, bus="virtual:test")))
+    client = local_client(create_app(Cell(runtime=rt, bus="virtual:test")))
     keys = {k["key"]: k for k in client.get("/scenario").json()}
     assert keys["osc"]["minimum"] == 0.05 and keys["osc"]["initial"] == 1.0
     r = client.post("/scenario", json={"rig_level": 120})

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.app import cli
 from cell.app.cell import Cell
@@ -233,7 +233,7 @@ def test_patch_observer_refuses_a_non_positive_definite_q_with_422(tmp_path):
     rt.ingest_many(frames(db, 0.0, 2.0))
     rt.advance(2.0)
     store = TuningStore(tmp_path / "tuning.json")
-    client = TestClient(create_app(Cell(runtime=rt, tuning=store)))
+    client = local_client(create_app(Cell(runtime=rt, tuning=store)))
     before = client.get("/observers/twc").json()
     assert before["params"]["Q"] == [1e-4, 1e-4, 1e-4, 2e-5]
     r = client.patch("/observers/twc", json={"Q": [1e-4, 1e-4, -1e-4, 2e-5]})

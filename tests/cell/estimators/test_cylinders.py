@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.app.cli import build_runtime
 from cell.app.cell import Cell
@@ -48,7 +48,7 @@ def test_the_si_turbo_cell_runs_both_observers_on_the_crank_streams(cell_run):
 
 def test_observers_are_tuned_over_http_validated_saved_and_restored(cell_run):
     settings, store, rt, tmp = cell_run
-    client = TestClient(create_app(Cell(runtime=rt, bus="none", tuning=store)))
+    client = local_client(create_app(Cell(runtime=rt, bus="none", tuning=store)))
     names = [b["name"] for b in client.get("/observers").json()]
     assert {"afr_inversion", "rod_inversion"} <= set(names)
     got = client.get("/observers/afr_inversion").json()

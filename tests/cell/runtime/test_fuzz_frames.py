@@ -9,7 +9,7 @@ import time
 import can
 import numpy as np
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.bus.interface import open_bus
 from cell.app.cell import Cell
@@ -107,7 +107,7 @@ def test_fuzz_in_process_counts_every_bad_frame_and_leaves_good_channels_exact(d
     assert len(fuzz) >= 100_000
     clean_rt, clean = run(db, good)
     rt, fuzzed = run(db, merge(good, fuzz))
-    h = TestClient(create_app(Cell(runtime=rt))).get("/health").json()
+    h = local_client(create_app(Cell(runtime=rt))).get("/health").json()
     assert h["frames"] == len(good) + len(fuzz)
     errs = h["decode_errors"]
     for kind in ("unknown_id", "bad_length", "remote_frame", "error_frame"):

@@ -192,6 +192,7 @@ class ObserverBlock(ObserverContract):
                                    name=name)
         except ValueError as exc:
             raise ParamError("gain", str(exc)) from None
+        self.core.errstate = False  # the contract holds np.errstate around the whole step
         self._apply(checked)
         self._t: float | None = None
         self._u: np.ndarray | None = None
@@ -228,7 +229,7 @@ class ObserverBlock(ObserverContract):
         t_prev, u_prev = self._t, self._u
         self._t, self._u = t, u
         if t_prev is not None and t > t_prev:
-            f, F = model.transition(t_prev, t - t_prev)
+            f, F = model.transition(t_prev, t - t_prev, jacobian=core.gain is None)
             core.predict(u_prev, F=F, f=f)
         x_prior = core.x
         h, H = model.measurement(t, u, self._rows)

@@ -292,6 +292,7 @@ class ObserverContract(Block):
             return f"non-finite state {x.tolist()}"
         b = self.state_bounds
         if b is not None:
+            b = b[: len(x)]  # an observer whose state can shrink (an augmentation switched off)
             out = (x < b[:, 0]) | (x > b[:, 1])
             if out.any():
                 i = int(np.argmax(out))
@@ -360,7 +361,15 @@ class ObserverContract(Block):
                                    else f"samples of {stream} not finite")
             return
         self._rec.samples += 1
-        self._samples(stream, index, values, t)
+        try:
+            with np.errstate(all="ignore"):
+                self._samples(stream, index, values, t)
+        except (ArithmeticError, ValueError, TypeError) as exc:
+            reason = f"diverged: {type(exc).__name__} on samples of {stream}: {exc}"
+            self._reset_estimate(reason)
+            self._rec.status, self._rec.reason = "diverged", reason
+            self._sample_reason = reason
+            raise Diverged(reason) from None
 
     def _stream_gap(self) -> tuple[tuple[str, str] | None, str | None]:
         """For a stream observer at a tick: ``(refused, quiet)``: the implausible frames since

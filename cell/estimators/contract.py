@@ -244,7 +244,8 @@ class ObserverContract(Block):
             rec.bad_run += 1
             what, reason = bad if bad is not None else ("samples", quiet)
             if bad is not None:
-                rec.refused[what] += 1
+                if what not in self.streams:  # a stream's frames are counted as they come
+                    rec.refused[what] += 1
                 rec.valid_ticks = 0
             if rec.bad_run >= self.gap_ticks:
                 rec.resume = rec.resume or rec.t_valid is not None

@@ -261,3 +261,51 @@ def test_a_design_round_trips_and_a_bad_one_keeps_the_previous(db, frames, bs_na
     with pytest.raises(DesignError, match="observer"):
         fresh.load_design({k: v for k, v in loaded.items() if k != "observer"})
     assert json.loads(json.dumps(fresh.design())) == loaded
+
+
+# -- the designs that hold more than parameters ----------------------------------------------
+def test_the_augmented_observer_takes_a_new_aq_live_and_refuses_one_the_pbh_test_refuses():
+    from cell.estimators.diesel_airpath import SHIPPED_DESIGN, augmented_observer, load_design
+
+    Aq = load_design(SHIPPED_DESIGN)
+    obs = augmented_observer(Aq)
+    u = {"FUEL_RATE": 200.0, "ENGINE_SPEED": 1500.0, "VGT_POS": 50.0, "EGR_POS": 20.0,
+         "EXH_BP_L": 600.0, "EXH_BP_R": 600.0, "DSL_P_IM": 180.0, "N_T": 40000.0}
+    ref = augmented_observer(Aq)
+    other = np.array(Aq)
+    other[:, 0] = [0.8, 0.6, 0.0]  # still seen by P_IM: passes Theorem 2
+    obs.load_design(obs.design() | {"Aq": other.tolist()})
+    assert obs.design()["Aq"] == other.tolist()
+    assert all(math.isfinite(v) for v in obs.step(0.0, u).values())
+    z, uu = np.r_[180.0, 200.0, 40.0, np.ones(Aq.shape[1])], np.array(list(u.values())[:6])
+    f_new = obs.model.f(0.0, z, uu, obs.model.params)
+    f_ref = ref.model.f(0.0, z, uu, ref.model.params)
+    assert not np.allclose(f_new, f_ref)  # the model follows the new A_q (eq. 3: f(x - A_q q))
+    bad = np.array(other)
+    bad[:, 0] = [0.0, 1.0, 0.0]  # only P_EM, which no run-time sensor sees
+    with pytest.raises(DesignError, match="column 1"):
+        obs.load_design(obs.design() | {"Aq": bad.tolist()})
+    with pytest.raises(DesignError, match="dim q"):
+        obs.load_design(obs.design() | {"Aq": np.c_[other, other].tolist()})
+    assert obs.design()["Aq"] == other.tolist()  # the previous design stays
+
+
+def test_a_gain_table_written_by_design_airpath_is_a_design_of_the_airpath_observer(tmp_path):
+    from cell.estimators.si_airpath import AirPathObserver, GainTable
+
+    table = GainTable.load()
+    path = table.save(tmp_path / "gains.json")
+    data = read_design(path)
+    assert data["observer"] == "airpath" and data["table"]["points"]
+    obs = AirPathObserver()
+    obs.load_design(data, source=str(path))
+    assert len(obs.table.points) == len(table.points)
+    assert GainTable.load(path).to_json() == table.to_json()
+    broken = json.loads(json.dumps(data))
+    broken["table"]["points"] = [{"speed": 1.0}]
+    before = obs.table
+    with pytest.raises(DesignError, match="malformed gain table"):
+        obs.load_design(broken, source="broken.json")
+    with pytest.raises(DesignError, match="names observer 'twc'"):
+        GainTable.from_json(data | {"observer": "twc"}, "x.json")
+    assert obs.table is before

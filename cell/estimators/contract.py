@@ -443,7 +443,9 @@ class ObserverContract(Block):
         except ParamError as exc:
             raise DesignError(f"{source}: params.{exc.field}: {exc.message}") from None
         except DesignError as exc:
-            raise DesignError(f"{source}: {exc}") if not str(exc).startswith(source) else exc
+            if str(exc).startswith(source):
+                raise
+            raise DesignError(f"{source}: {exc}") from None
         self._use_design(own)
         if checked_params:
             self._apply(checked_params)

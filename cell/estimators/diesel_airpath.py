@@ -178,7 +178,7 @@ def _check_Aq(value: Any, source: str) -> np.ndarray:
 
 
 class AugmentedObserver(ObserverBlock):
-    """Seed 002's augmented observer (eq. 3/4) with :math:`\hat A_q` = ``Aq``, on the contract.
+    r"""Seed 002's augmented observer (eq. 3/4) with :math:`\hat A_q` = ``Aq``, on the contract.
 
     Its design (``design()``, ``load_design``, files of ``testcell design bias``) holds
     ``Aq`` besides the tunable parameters. A design loaded live must keep dim q (the bias
@@ -230,7 +230,7 @@ class AugmentedObserver(ObserverBlock):
 def augmented_observer(Aq: np.ndarray, name: str = AUGMENTED_NAME,
                        sensors: Sequence[str] = RUNTIME_SENSORS, rate: str = "FAS",
                        channels: dict[str, str] | None = None) -> AugmentedObserver:
-    """The augmented observer (seed 002, eq. 3/4) with :math:`\hat A_q` = ``Aq``.
+    r"""The augmented observer (seed 002, eq. 3/4) with :math:`\hat A_q` = ``Aq``.
 
     Refused (:class:`~cell.estimators.augmentation.AugmentationError`) when ``Aq`` fails the PBH
     test (Theorem 2) with the run-time sensors.
@@ -239,7 +239,7 @@ def augmented_observer(Aq: np.ndarray, name: str = AUGMENTED_NAME,
 
 
 def load_design(path: str | Path) -> np.ndarray:
-    """:math:`\hat A_q` from a design file of ``testcell design bias``; refuses a bad file,
+    r""":math:`\hat A_q` from a design file of ``testcell design bias``; refuses a bad file,
     or one that names another observer than ``airpath-augmented``."""
     path = Path(path)
     try:

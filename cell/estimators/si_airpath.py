@@ -37,7 +37,6 @@ too, and any other set (tuning ``feedback``) or tick period is solved for when a
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -111,7 +111,8 @@ class _CachedRhs:
         return self._value
 
     def jacobian(self, t, x, u, p) -> np.ndarray:
-        """:func:`airpath_jacobian` with its base point from the cache."""
+        """:func:`airpath_jacobian` (in the guarded domain) with its base point from the cache."""
+        x, u = guard_domain(x, u)
         return airpath_jacobian(t, x, u, p, f0=self.f(t, x, u, p))
 
 

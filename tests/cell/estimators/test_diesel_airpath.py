@@ -142,6 +142,8 @@ def test_the_models_domain_guard_keeps_powers_real_on_negative_pressures():
     for x in ([150.0, 200.0, 40.0], [-1e10, -1e10, 1e10], [0.0, 0.0, 0.0]):
         f = model.f(0.0, np.array(x), u, model.params)
         assert f.dtype == float and np.isfinite(f).all()
+        J = model.F(0.0, np.array(x), u, model.params)  # the Jacobian's differences too
+        assert J.dtype == float and np.isfinite(J).all()
 
 
 def test_a_diverged_estimate_is_reset_with_the_reason_and_the_observer_goes_on():

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -39,6 +40,7 @@ from cell.plant.diesel_airpath import (
     airpath_rhs,
 )
 from cell.estimators.augmentation import AugmentationError, augment, pbh_check
+from cell.estimators.contract import DesignError
 from cell.estimators.core import Model
 from cell.estimators.observer import ObserverBlock
 
@@ -59,6 +61,25 @@ R_DIAG = {"P_IM": 0.8 ** 2, "P_EM": 4.0 ** 2, "N_T": 100.0 ** 2}
 Q_STATES = (0.05, 0.5, 1e-4)
 Q_BIAS = 1e-3
 X0 = (101.3, 105.0, 5.0)
+
+#: Plausible ranges of the observers' input channels (the contract refuses a tick outside
+#: them): an absolute manifold pressure below 30 kPa is a sensor unplugged, not an engine
+#: (an all-zero ``AIRPATH_SENS`` frame); back-pressures as the DBC declares them.
+RANGES = {
+    "FUEL_RATE": (0.0, 3000.0), "ENGINE_SPEED": (0.0, 8000.0), "VGT_POS": (0.0, 100.0),
+    "EGR_POS": (0.0, 100.0), "EXH_BP_L": (-500.0, 20000.0), "EXH_BP_R": (-500.0, 20000.0),
+    "DSL_P_IM": (30.0, 1300.0), "DSL_P_EM": (30.0, 1300.0), "N_T": (0.0, 65000.0),
+}
+#: Bounds of the model states (kPa, kPa, krpm) beyond which an estimate has diverged, and of
+#: a bias state (the DBC range of ``Q_BIAS_n``).
+STATE_BOUNDS = {"P_IM": (5.0, 1500.0), "P_EM": (5.0, 1500.0), "N_T": (-5.0, 100.0)}
+BIAS_BOUND = (-1e4, 1e4)
+#: The model's domain guard: pressures (kPa) below this floor and back-pressures
+#: (mmH2O) outside the DBC range are clamped before the model sees them, so that no
+#: negative base reaches a power or a root (``(p_es/p_em) ** k`` of a negative ratio is
+#: complex) whatever the estimate does; the contract's state bounds then reset it.
+P_FLOOR = 1.0
+BP_RANGE = (-500.0, 20000.0)
 
 
 def _h(t, x, u, p):
@@ -85,13 +106,29 @@ class _CachedRhs:
     def f(self, t, x, u, p) -> np.ndarray:
         key = (np.asarray(x, dtype=float).tobytes(), np.asarray(u, dtype=float).tobytes())
         if key != self._key:
-            self._value = airpath_rhs(t, x, u, p)
+            self._value = airpath_rhs(t, *guard_domain(x, u), p)
             self._key = key
         return self._value
 
     def jacobian(self, t, x, u, p) -> np.ndarray:
-        """:func:`airpath_jacobian` with its base point from the cache."""
+        """:func:`airpath_jacobian` (in the guarded domain) with its base point from the cache."""
+        x, u = guard_domain(x, u)
         return airpath_jacobian(t, x, u, p, f0=self.f(t, x, u, p))
+
+
+def guard_domain(x, u) -> tuple[np.ndarray, np.ndarray]:
+    """The model's domain guard: ``x`` with its pressures at least :data:`P_FLOOR` and ``u``
+    with its back-pressures within :data:`BP_RANGE` (copies only when something is clamped)."""
+    x = np.asarray(x, dtype=float)
+    u = np.asarray(u, dtype=float)
+    if x[0] < P_FLOOR or x[1] < P_FLOOR:
+        x = x.copy()
+        x[:2] = np.maximum(x[:2], P_FLOOR)
+    lo, hi = BP_RANGE
+    if not (lo <= u[4] <= hi and lo <= u[5] <= hi):
+        u = u.copy()
+        u[4:6] = np.clip(u[4:6], lo, hi)
+    return x, u
 
 
 def default_model(params: AirPathParams | None = None) -> Model:
@@ -115,33 +152,96 @@ def default_observer(name: str = "airpath-default", sensors: Sequence[str] = RUN
     return ObserverBlock(name, default_model(), measurements={s: SIGNAL[s] for s in sensors},
                          Q=list(Q_STATES), R=[R_DIAG[s] for s in sensors], x0=list(X0),
                          P0=[100.0, 400.0, 100.0], rate=rate, channels=channels,
-                         prefix="AIRPATH_DEF")
+                         prefix="AIRPATH_DEF", **_contract(sensors, ()))
 
 
-def augmented_observer(Aq: np.ndarray, name: str = "airpath-augmented",
+def _contract(sensors: Sequence[str], biases: Sequence[str]) -> dict:
+    """The contract's settings of both observers: input ranges, state bounds, sigma bands."""
+    ins = [*INPUTS, *(SIGNAL[s] for s in sensors)]
+    return {"ranges": {ch: RANGES[ch] for ch in ins if ch in RANGES},
+            "state_bounds": STATE_BOUNDS | {b: BIAS_BOUND for b in biases}, "sd": STATES}
+
+
+#: The augmented observer's block name: the ``observer`` its design files name.
+AUGMENTED_NAME = "airpath-augmented"
+
+
+def _check_Aq(value: Any, source: str) -> np.ndarray:
+    try:
+        Aq = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: field 'Aq' (a 3 x n_q list of numbers) is missing or not "
+                          "numeric") from None
+    if Aq.ndim != 2 or Aq.shape[0] != 3 or Aq.shape[1] < 1 or not np.isfinite(Aq).all():
+        raise ConfigError(f"{source}: 'Aq' must be 3 x n_q (n_q >= 1) finite numbers, "
+                          f"got shape {Aq.shape}")
+    return Aq
+
+
+class AugmentedObserver(ObserverBlock):
+    r"""Seed 002's augmented observer (eq. 3/4) with :math:`\hat A_q` = ``Aq``, on the contract.
+
+    Its design (``design()``, ``load_design``, files of ``testcell design bias``) holds
+    ``Aq`` besides the tunable parameters. A design loaded live must keep dim q (the bias
+    states are channels); one that fails the PBH test with the run-time sensors is refused.
+    """
+
+    def __init__(self, Aq: np.ndarray, name: str = AUGMENTED_NAME,
+                 sensors: Sequence[str] = RUNTIME_SENSORS, rate: str = "FAS",
+                 channels: dict[str, str] | None = None) -> None:
+        Aq = np.asarray(Aq, dtype=float).reshape(3, -1)
+        pbh_check(runtime_C(sensors), Aq, STATES, sensors)
+        nq = Aq.shape[1]
+        if channels is None:
+            channels = {s: f"{SIGNAL[s]}_EST" for s in STATES} | {
+                f"Q_BIAS_{i + 1}": f"Q_BIAS_{i + 1}" for i in range(nq)}
+        self.Aq = Aq
+        self._sensors = tuple(sensors)
+        super().__init__(name, augment(default_model(), Aq),
+                         measurements={s: SIGNAL[s] for s in sensors},
+                         Q=[*Q_STATES, *[Q_BIAS] * nq], R=[R_DIAG[s] for s in sensors],
+                         x0=[*X0, *[0.0] * nq], P0=[100.0, 400.0, 100.0, *[100.0] * nq],
+                         rate=rate, channels=channels, prefix="AIRPATH_AUG",
+                         units={f"Q_BIAS_{i + 1}": "" for i in range(nq)},
+                         **_contract(sensors, [f"Q_BIAS_{i + 1}" for i in range(nq)]))
+
+    def _design_payload(self) -> dict[str, Any]:
+        return {"Aq": self.Aq.tolist()}
+
+    def _check_design(self, design: Any) -> Any:
+        if "Aq" not in design:
+            return None
+        Aq = _check_Aq(design["Aq"], "Aq")
+        if Aq.shape != self.Aq.shape:
+            raise DesignError(f"Aq: {Aq.shape[0]} x {Aq.shape[1]} but the running observer has "
+                              f"dim q = {self.Aq.shape[1]} (its bias channels); start the cell with "
+                              "--bias-design FILE for another dim q")
+        try:
+            pbh_check(runtime_C(self._sensors), Aq, STATES, self._sensors)
+        except AugmentationError as exc:
+            raise DesignError(f"Aq: {exc}") from None
+        return Aq
+
+    def _use_design(self, checked: Any) -> None:
+        if checked is not None:
+            self.Aq = checked
+            self.model = augment(default_model(), checked)
+
+
+def augmented_observer(Aq: np.ndarray, name: str = AUGMENTED_NAME,
                        sensors: Sequence[str] = RUNTIME_SENSORS, rate: str = "FAS",
-                       channels: dict[str, str] | None = None) -> ObserverBlock:
-    """The augmented observer (seed 002, eq. 3/4) with :math:`\\hat A_q` = ``Aq``.
+                       channels: dict[str, str] | None = None) -> AugmentedObserver:
+    r"""The augmented observer (seed 002, eq. 3/4) with :math:`\hat A_q` = ``Aq``.
 
     Refused (:class:`~cell.estimators.augmentation.AugmentationError`) when ``Aq`` fails the PBH
     test (Theorem 2) with the run-time sensors.
     """
-    Aq = np.asarray(Aq, dtype=float).reshape(3, -1)
-    pbh_check(runtime_C(sensors), Aq, STATES, sensors)
-    model = augment(default_model(), Aq)
-    nq = Aq.shape[1]
-    if channels is None:
-        channels = {s: f"{SIGNAL[s]}_EST" for s in STATES} | {f"Q_BIAS_{i + 1}": f"Q_BIAS_{i + 1}"
-                                                       for i in range(nq)}
-    return ObserverBlock(name, model, measurements={s: SIGNAL[s] for s in sensors},
-                         Q=[*Q_STATES, *[Q_BIAS] * nq], R=[R_DIAG[s] for s in sensors],
-                         x0=[*X0, *[0.0] * nq], P0=[100.0, 400.0, 100.0, *[100.0] * nq],
-                         rate=rate, channels=channels, prefix="AIRPATH_AUG",
-                         units={f"Q_BIAS_{i + 1}": "" for i in range(nq)})
+    return AugmentedObserver(Aq, name, sensors, rate, channels)
 
 
 def load_design(path: str | Path) -> np.ndarray:
-    """:math:`\\hat A_q` from a design file of ``testcell design bias``; refuses a bad file."""
+    r""":math:`\hat A_q` from a design file of ``testcell design bias``; refuses a bad file,
+    or one that names another observer than ``airpath-augmented``."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -150,15 +250,13 @@ def load_design(path: str | Path) -> np.ndarray:
                           "bias LOG --out FILE`)") from None
     except (OSError, ValueError) as exc:
         raise ConfigError(f"bias design {path}: not a readable JSON file: {exc}") from None
-    try:
-        Aq = np.asarray(data["Aq"], dtype=float)
-    except (KeyError, TypeError, ValueError):
+    if not isinstance(data, dict) or "Aq" not in data:
         raise ConfigError(f"bias design {path}: field 'Aq' (a 3 x n_q list of numbers) is "
-                          "missing or not numeric") from None
-    if Aq.ndim != 2 or Aq.shape[0] != 3 or Aq.shape[1] < 1 or not np.isfinite(Aq).all():
-        raise ConfigError(f"bias design {path}: 'Aq' must be 3 x n_q (n_q >= 1) finite numbers, "
-                          f"got shape {Aq.shape}")
-    return Aq
+                          "missing or not numeric")
+    if data.get("observer", AUGMENTED_NAME) != AUGMENTED_NAME:
+        raise DesignError(f"bias design {path}: names observer {data['observer']!r}, not "
+                          f"{AUGMENTED_NAME!r}")
+    return _check_Aq(data["Aq"], f"bias design {path}")
 
 
 def airpath_observers(design: str | Path | None = None) -> list[ObserverBlock]:

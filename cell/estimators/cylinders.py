@@ -12,8 +12,8 @@ In the angle domain a lag of time constant :math:`\tau` at engine speed :math:`\
 full-measurement observers (eqs. 6-8, :math:`h` = 3, :math:`\tilde L = -4/\tau`,
 :math:`\alpha_k^2 = 4/(k^2+1)`) in cascade (Figure 2): the first reconstructs the
 intermediate variable from the sensor, the second the manifold AFR :math:`w` from it. The
-gains are designed on a grid of engine speeds off the hot path and interpolated
-(:mod:`cell.estimators.speed_grid`), with hysteresis. Outputs:
+gains are those of the 1 % speed band the engine runs in, held with hysteresis and designed
+ahead by a background thread (:mod:`cell.estimators.speed_grid`). Outputs:
 
 - ``AFR_MANIFOLD_EST``: :math:`\hat w` at the last sample;
 - ``AFR_HARM_1..3``: :math:`E(k) = \sqrt{|c_k|^2 + |c_{-k}|^2} = \sqrt 2 |c_k|` (Figures 6, 8);
@@ -87,7 +87,7 @@ def _firing_deg(order: tuple[int, ...] = FIRING_ORDER) -> np.ndarray:
 
 def uego_design(tau1: float, tau2: float, h: int, ltilde: float, alpha: float, rpm: float
                 ) -> tuple[LinearPeriodic, tuple[PeriodicObserver, PeriodicObserver]]:
-    """The UEGO cascade's gains at ``rpm`` (a node of the speed grid): the lags in radians
+    """The UEGO cascade's gains at ``rpm`` (a band of the speed grid): the lags in radians
     of crank angle; the cascade and its two stages (sensor side first, Figure 2)."""
     omega_e = rpm * math.pi / 30.0
     stages = []
@@ -193,7 +193,6 @@ class UegoInversion(_StreamObserver):
         for key, value in checked.items():
             setattr(self, key, value)
         self.rpm: float | None = None
-        self._design_rpm: float | None = None
         self._grid: SpeedGrid | None = None
         self._lp = None
         self._obs: PeriodicObserver | None = None
@@ -206,7 +205,6 @@ class UegoInversion(_StreamObserver):
 
     # -- design -------------------------------------------------------------------------
     def _redesign(self) -> None:
-        self._design_rpm = None
         self._bucket = None
         key = (self.tau1, self.tau2, self.h, self.ltilde, self.alpha)
         self._grid = shared_grid(key, functools.partial(uego_design, *key))
@@ -216,17 +214,14 @@ class UegoInversion(_StreamObserver):
             self._design_for(self.rpm)
 
     def _design_for(self, rpm: float) -> None:
-        """The design at ``rpm``, interpolated between the speed grid's nodes (designed off
-        the hot path, :mod:`cell.estimators.speed_grid`); kept while the speed stays within
-        the grid's hysteresis band. The exhaust-phase windows follow 1 % speed bands."""
-        if not self._grid.moved(rpm, self._design_rpm):
+        """Gains of the 1 % speed band at ``rpm`` (the lags in radians of crank angle), held
+        with hysteresis and designed off the hot path (:mod:`cell.estimators.speed_grid`)."""
+        bucket = self._grid.select(rpm, self._bucket)
+        if bucket == self._bucket:
             return
-        self._lp, (self._first, self._obs) = self._grid.system(rpm)
-        self._design_rpm = rpm
-        bucket = int(round(math.log(rpm) / math.log(1.01)))
-        if bucket != self._bucket:
-            self._bucket = bucket
-            self._owner_of = self._owners()
+        self._lp, (self._first, self._obs) = self._grid.design(bucket)
+        self._bucket = bucket
+        self._owner_of = self._owners()
 
     # -- windows and diagnosis ----------------------------------------------------------
     def _reset_windows(self) -> None:

@@ -1,23 +1,25 @@
-r"""Observer designs on a grid of engine speeds, made off the hot path and interpolated.
+r"""Observer designs on a grid of engine speeds, made off the hot path.
 
 An angle-domain observer of a time-domain sensor (seed 001's UEGO inversion) has gains that
 depend on the engine speed: a lag of time constant :math:`\tau` is :math:`1/(\tau\omega_e)`
-per radian of crank angle. Designing at every speed change costs tens of milliseconds, which
-stalls the runtime's loop. Instead a :class:`SpeedGrid` holds the designs at geometrically
-spaced speeds (``ratio`` apart), made once per process and per set of parameters:
+per radian of crank angle. The observer uses the design of the 1 % speed band it runs in
+(node ``i`` at :math:`1.01^i` rpm). Designing a band costs tens of milliseconds (the
+per-angle tables and the per-frame products), which would stall the runtime's loop at
+every band the engine speed crosses. A :class:`SpeedGrid` makes them elsewhere:
 
-- a background thread designs every node as soon as the grid is first asked for one,
-  nearest the speed asked first; a node asked for before the thread reached it is designed
-  at once (only in the first moments of a process);
-- :meth:`SpeedGrid.system` gives a :class:`InterpolatedSystem` at a speed: the per-frame
-  transition of the two neighbouring designs, interpolated linearly in log-speed, entry by
-  entry. The designs are smooth in the speed, so this is closer to the exact design than a
-  design held over a band;
-- the caller keeps one system while the speed stays within a hysteresis band
-  (:meth:`SpeedGrid.moved`), so a speed that dithers does not rebuild anything.
+- a background thread designs the bands next to the one in use (``ahead`` on each side)
+  as soon as the speed settles in a band, so a speed that moves finds its next band made;
+  only a band asked for before the thread got there (the first one of a process, or a jump
+  of more than ``ahead`` bands within one frame) is designed in the caller's thread, and
+  counted (:attr:`SpeedGrid.designed_inline`);
+- :meth:`SpeedGrid.select` holds the band in use until the speed has left it by
+  ``hysteresis`` of a band width, so a speed that dithers at a band edge does not flip
+  between two designs;
+- at most ``keep`` designs are held (the ones farthest from the speed go first), shared by
+  every observer of the process with the same parameters (:func:`shared_grid`).
 
-The node designs are a pure function of the speed and the parameters, so the results do
-not depend on when the thread got to a node.
+A node's design is a pure function of its speed and the parameters, so the results do not
+depend on which thread made it, or when.
 """
 
 from __future__ import annotations
@@ -34,136 +36,122 @@ from cell.estimators.periodic import LinearPeriodic
 
 #: grids kept per process (a retuned observer makes a new one; the oldest goes)
 MAX_GRIDS = 4
-
-
-class InterpolatedSystem:
-    """The :meth:`LinearPeriodic.run` of a design between two grid nodes.
-
-    ``weight`` is the share of the upper node (0: the lower node's design exactly).
-    """
-
-    def __init__(self, lower: LinearPeriodic, upper: LinearPeriodic, weight: float) -> None:
-        self.lower, self.upper, self.weight = lower, upper, float(weight)
-        self.d, self.p, self.q = lower.d, lower.p, lower.q
-        self.period = lower.period
-        self._stacked: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
-
-    @staticmethod
-    def _block(lp: LinearPeriodic, j: int, n: int) -> np.ndarray:
-        got = lp._stacked.get((j, n))
-        if got is None:
-            F, G, H, J = lp.frame(j, n)
-            got = lp._stacked[(j, n)] = (np.block([[F, G], [H, J]]),
-                                         np.empty(lp.d + n * lp.p))
-        return got[0]
-
-    def run(self, z: np.ndarray, j: int, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """State after the samples ``y`` from angle index ``j`` and the outputs at each."""
-        n = len(y)
-        key = (j % self.period, n)
-        got = self._stacked.get(key)
-        if got is None:
-            S = self._block(self.lower, *key)
-            if self.weight:
-                S = S + self.weight * (self._block(self.upper, *key) - S)
-            got = self._stacked[key] = (S, np.empty(self.d + n * self.p))
-        S, buf = got
-        buf[:self.d] = z
-        buf[self.d:] = np.ravel(y)
-        v = S @ buf
-        return v[:self.d], v[self.d:].reshape(n, self.q)
+#: the band width: node ``i`` is designed at ``BAND ** i`` rpm
+BAND = 1.01
 
 
 class SpeedGrid:
-    """Designs ``design(rpm)`` at ``lo * ratio**i`` rpm up to ``hi`` (module docstring).
+    """Designs ``design(rpm)`` per 1 % speed band, made ahead by a background thread.
 
-    ``design`` returns ``(system, extra)``: the :class:`LinearPeriodic` whose frames are
-    interpolated, and whatever else the observer needs of a design (its stages), taken
-    from the lower node.
+    ``design`` returns ``(system, extra)``: the :class:`LinearPeriodic` that runs the
+    samples (its frames of ``frame_len`` samples are multiplied out with the design) and
+    whatever else the observer needs of a design.
     """
 
-    def __init__(self, design: Callable[[float], tuple[LinearPeriodic, Any]], lo: float = 300.0,
-                 hi: float = 9000.0, ratio: float = 1.05, hysteresis: float = 0.0025) -> None:
-        if not (0.0 < lo < hi and ratio > 1.0 and hysteresis >= 0.0):
-            raise ValueError(f"a speed grid needs 0 < lo < hi, ratio > 1 and hysteresis >= 0; "
-                             f"got lo={lo}, hi={hi}, ratio={ratio}, hysteresis={hysteresis}")
+    def __init__(self, design: Callable[[float], tuple[LinearPeriodic, Any]], *,
+                 ahead: int = 3, keep: int = 24, hysteresis: float = 0.25,
+                 frame_len: int = 4) -> None:
+        if ahead < 0 or keep < 2 * ahead + 1 or not 0.0 <= hysteresis < 0.5:
+            raise ValueError(f"a speed grid needs ahead >= 0, keep >= 2 ahead + 1 and "
+                             f"0 <= hysteresis < 0.5; got ahead={ahead}, keep={keep}, "
+                             f"hysteresis={hysteresis}")
         self._design = design
-        count = int(math.ceil(math.log(hi / lo) / math.log(ratio))) + 1
-        self.speeds = lo * ratio ** np.arange(count)
-        self._log_lo, self._log_ratio = math.log(lo), math.log(ratio)
-        self.hysteresis = float(hysteresis)
-        self._nodes: list[tuple[LinearPeriodic, Any] | None] = [None] * count
-        self._locks = [threading.Lock() for _ in range(count)]
+        self.ahead, self.keep, self.hysteresis = int(ahead), int(keep), float(hysteresis)
+        self.frame_len = int(frame_len)
+        self._nodes: dict[int, tuple[LinearPeriodic, Any]] = {}
+        self._lock = threading.Lock()  # the node table
+        self._making: dict[int, threading.Lock] = {}
+        self._wanted: collections.deque[int] = collections.deque()
+        self._wake = threading.Condition(self._lock)
         self._thread: threading.Thread | None = None
-        self._start_lock = threading.Lock()
-        #: designs made by the caller's thread because the background one had not got there
+        self._centre = 0
+        #: designs made in the caller's thread because the background one had not got there
         self.designed_inline = 0
+        #: designs made in all
         self.designed = 0
 
     # -- nodes ------------------------------------------------------------------------------
-    def node(self, i: int, inline: bool = True) -> tuple[LinearPeriodic, Any]:
-        got = self._nodes[i]
-        if got is not None:
-            return got
-        with self._locks[i]:
-            got = self._nodes[i]
-            if got is None:
-                got = self._design(float(self.speeds[i]))
-                lp = got[0]
-                for j in range(0, lp.period, 4):  # the frames the simulator sends: 4 samples
-                    InterpolatedSystem._block(lp, j, 4)
-                lp._cache.clear()  # the stacked products are what runs
+    @staticmethod
+    def speed(i: int) -> float:
+        return BAND ** i
+
+    def _make(self, i: int, inline: bool) -> tuple[LinearPeriodic, Any]:
+        with self._lock:
+            got = self._nodes.get(i)
+            if got is not None:
+                return got
+            making = self._making.setdefault(i, threading.Lock())
+        with making:
+            got = self._nodes.get(i)
+            if got is not None:
+                return got
+            got = self._design(self.speed(i))
+            lp = got[0]
+            n = self.frame_len
+            for j in range(0, lp.period, n):  # the frames of the stream, multiplied out
+                lp.run(np.zeros(lp.d), j, np.zeros((n, lp.p)))
+            lp._cache.clear()  # the stacked products are what runs
+            with self._lock:
                 self._nodes[i] = got
+                self._making.pop(i, None)
                 self.designed += 1
                 if inline:
                     self.designed_inline += 1
+                self._trim()
         return got
 
-    def _fill(self, first: int) -> None:
-        order = sorted(range(len(self.speeds)), key=lambda i: abs(i - first))
-        for i in order:
-            self.node(i, inline=False)
+    def _trim(self) -> None:
+        while len(self._nodes) > self.keep:
+            far = max(self._nodes, key=lambda k: abs(k - self._centre))
+            del self._nodes[far]
 
-    def _start(self, near: int) -> None:
-        with self._start_lock:
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._fill, args=(near,), daemon=True,
-                                                name="speed-grid-designs")
-                self._thread.start()
+    def _work(self) -> None:
+        while True:
+            with self._wake:
+                while not self._wanted:
+                    self._wake.wait()
+                i = self._wanted.popleft()
+                if i in self._nodes or abs(i - self._centre) > self.ahead:
+                    continue
+            try:
+                self._make(i, inline=False)
+            except Exception:  # a band that cannot be designed is designed (and fails) inline
+                pass
 
-    @property
-    def complete(self) -> bool:
-        return all(n is not None for n in self._nodes)
+    def _prefetch(self, centre: int) -> None:
+        with self._wake:
+            self._centre = centre
+            want = [centre + d * s for d in range(1, self.ahead + 1) for s in (1, -1)]
+            self._wanted = collections.deque(i for i in want if i not in self._nodes)
+            if self._wanted:
+                if self._thread is None:
+                    self._thread = threading.Thread(target=self._work, daemon=True,
+                                                    name="speed-grid-designs")
+                    self._thread.start()
+                self._wake.notify()
 
-    def wait(self, timeout: float | None = None) -> bool:
-        """Wait for the background designs (tests and benchmarks); True when all are made."""
-        if self._thread is not None:
-            self._thread.join(timeout)
-        return self.complete
+    def idle(self) -> bool:
+        """No band near the one in use is waiting for its design (tests and benchmarks)."""
+        with self._lock:
+            return not self._wanted and not self._making
 
-    # -- the system at a speed ----------------------------------------------------------------
-    def position(self, rpm: float) -> tuple[int, float]:
-        """``(lower node, weight of the upper one)`` at ``rpm``, clamped to the grid."""
-        f = (math.log(rpm) - self._log_lo) / self._log_ratio
-        last = len(self.speeds) - 1
-        if f <= 0.0:
-            return 0, 0.0
-        if f >= last:
-            return last, 0.0
-        i = int(f)
-        return i, f - i
+    # -- the design at a speed ----------------------------------------------------------------
+    def select(self, rpm: float, current: int | None) -> int:
+        """The band to run at ``rpm``: ``current`` while the speed is within it or within
+        ``hysteresis`` of a band width of its edges, else the band the speed is in."""
+        f = math.log(rpm) / math.log(BAND)
+        if current is not None and abs(f - current) <= 0.5 + self.hysteresis:
+            return current
+        return int(round(f))
 
-    def system(self, rpm: float) -> tuple[InterpolatedSystem, Any]:
-        """The interpolated design at ``rpm`` and the lower node's extras."""
-        i, w = self.position(rpm)
-        self._start(i)
-        lower = self.node(i)
-        upper = self.node(i + 1) if w else lower
-        return InterpolatedSystem(lower[0], upper[0], w), lower[1]
-
-    def moved(self, rpm: float, designed_at: float | None) -> bool:
-        """Whether ``rpm`` has left the hysteresis band around the speed of the design in use."""
-        return designed_at is None or abs(math.log(rpm / designed_at)) > self.hysteresis
+    def design(self, i: int) -> tuple[LinearPeriodic, Any]:
+        """Band ``i``'s design (made now if the background thread has not made it), and the
+        bands around it queued for the background thread."""
+        got = self._nodes.get(i)
+        if got is None:
+            got = self._make(i, inline=True)
+        self._prefetch(i)
+        return got
 
 
 _GRIDS: collections.OrderedDict[Hashable, SpeedGrid] = collections.OrderedDict()
@@ -184,4 +172,4 @@ def shared_grid(key: Hashable, design: Callable[[float], tuple[LinearPeriodic, A
         return grid
 
 
-__all__ = ["InterpolatedSystem", "SpeedGrid", "shared_grid"]
+__all__ = ["BAND", "SpeedGrid", "shared_grid"]

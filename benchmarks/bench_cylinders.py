@@ -16,7 +16,6 @@ observers), against the same budget.
 
 from __future__ import annotations
 
-import sys
 import time
 
 from cell.bus.dbc import load
@@ -73,4 +72,9 @@ def main(seconds: float = 10.0) -> None:
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else 10.0)
+    import argparse
+
+    _p = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    _p.add_argument("seconds", nargs="?", type=float, default=10.0,
+                    help="simulated seconds at 6000 rpm (default 10)")
+    main(_p.parse_args().seconds)

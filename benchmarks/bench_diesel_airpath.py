@@ -12,7 +12,6 @@ estimator platform's own cost per step, which no model can go below.
 
 from __future__ import annotations
 
-import sys
 import time
 
 import numpy as np
@@ -74,4 +73,9 @@ def main(seconds: float = 60.0) -> None:
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else 60.0)
+    import argparse
+
+    _p = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    _p.add_argument("seconds", nargs="?", type=float, default=60.0,
+                    help="simulated seconds (default 60)")
+    main(_p.parse_args().seconds)

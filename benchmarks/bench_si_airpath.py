@@ -12,7 +12,6 @@ whole run, and the mean and 99th-percentile tick cost.
 
 from __future__ import annotations
 
-import sys
 import time
 
 import numpy as np
@@ -52,4 +51,9 @@ def main(seconds: float = 104.0) -> None:
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else 104.0)
+    import argparse
+
+    _p = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    _p.add_argument("seconds", nargs="?", type=float, default=104.0,
+                    help="simulated seconds (default 104)")
+    main(_p.parse_args().seconds)

@@ -275,7 +275,8 @@ def soak_engine(engine: str, seconds: float, state_dir: Path, speed: float, grou
     return {
         "engine": engine, "seconds": round(sim_wall, 1), "speed": speed,
         "sim_sent": sent, "wire_frames": counter.count, "runtime_frames": received,
-        "lost": (sent - received) if sent is not None else None,
+        "lost": max(0, sent - received) if sent is not None else None,
+        "counted_beyond_sent": max(0, received - sent) if sent is not None else None,
         "bus_fps": round(counter.count / sim_wall) if sim_wall else 0,
         "tick_overruns": h.get("tick_overruns", "not counted on this branch"),
         "stream_messages": ws_got[0], "stream_dropped": ws_got[1],
@@ -299,6 +300,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="total length over all engines, minutes (default 2)")
     p.add_argument("--seconds", type=float, default=None, help="total length, s (overrides minutes)")
     p.add_argument("--speed", type=float, default=SPEED, help=f"simulator speed (default {SPEED:g})")
+    p.add_argument("--speed-for", action="append", default=[], metavar="ENGINE=SPEED",
+                   help="another speed for one engine (repeatable), e.g. si-turbo=2")
     p.add_argument("--engine", action="append", default=None,
                    help="soak only this engine (repeatable; default every registered one)")
     p.add_argument("--group", default=BUS_GROUP, help=f"udp_multicast group (default {BUS_GROUP})")
@@ -310,14 +313,21 @@ def main(argv: list[str] | None = None) -> int:
 
     app.load()
     engines = args.engine or sorted(registry.ENGINES)
+    speeds = {e: args.speed for e in engines}
+    for item in args.speed_for:
+        name, sep, value = item.partition("=")
+        if not sep or name not in speeds:
+            p.error(f"--speed-for {item!r}: give ENGINE=SPEED with ENGINE one of {', '.join(engines)}")
+        speeds[name] = float(value)
     state_dir = Path(os.environ.get("TMPDIR", "/tmp")) / f"testcell-soak-{os.getpid()}"
     state_dir.mkdir(parents=True, exist_ok=True)
     results = []
     load0 = os.getloadavg()[0]
     for engine in engines:
-        print(f"soak {engine}: {total / len(engines):.0f} s at --speed {args.speed:g} ...",
+        print(f"soak {engine}: {total / len(engines):.0f} s at --speed {speeds[engine]:g} ...",
               file=sys.stderr, flush=True)
-        r = soak_engine(engine, total / len(engines), state_dir, args.speed, args.group, args.port)
+        r = soak_engine(engine, total / len(engines), state_dir, speeds[engine], args.group,
+                        args.port)
         r["load_1min"] = [round(load0, 2), round(os.getloadavg()[0], 2)]
         print(f"  simulator sent {r['sim_sent']} frames ({r['bus_fps']}/s on the wire), runtime "
               f"counted {r['runtime_frames']}, lost {r['lost']}; stream p50 {r['stream_p50_ms']} ms, "

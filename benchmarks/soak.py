@@ -97,9 +97,9 @@ class WireCounter(threading.Thread):
         self.sock.close()
 
 
-def get(url: str) -> dict:
+def get(url: str, timeout: float = 20.0) -> dict:
     req = urllib.request.Request(url, headers=HEADERS)
-    with urllib.request.urlopen(req, timeout=5) as r:
+    with urllib.request.urlopen(req, timeout=timeout) as r:
         return json.loads(r.read())
 
 

@@ -65,6 +65,7 @@ class WireCounter(threading.Thread):
         self.unpack = unpack_message
         self.sim_ids = sim_ids
         self.count = 0
+        self.by_id: dict[int, int] = {}
         self.stop = threading.Event()
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -88,8 +89,10 @@ class WireCounter(threading.Thread):
                 continue
             except OSError:
                 return
-            if self.unpack(data).arbitration_id in self.sim_ids:
+            ident = self.unpack(data).arbitration_id
+            if ident in self.sim_ids:
                 self.count += 1
+                self.by_id[ident] = self.by_id.get(ident, 0) + 1
 
     def close(self) -> None:
         self.stop.set()
@@ -103,7 +106,7 @@ def get(url: str, timeout: float = 20.0) -> dict:
         return json.loads(r.read())
 
 
-def sim_frames_received(base: str, sim_ids: set[int]) -> int | None:
+def sim_frames_received(base: str, sim_ids: set[int]) -> dict[int, int] | None:
     """Frames of the simulator's IDs the runtime counted (``/metrics``' frames by ID), or
     None when ``/metrics`` does not say. The runtime's own frames, should an echo of one
     come back unrecognised, are not the simulator's."""
@@ -113,13 +116,14 @@ def sim_frames_received(base: str, sim_ids: set[int]) -> int | None:
             text = r.read().decode()
     except OSError:
         return None
-    total, seen = 0, False
+    by_id: dict[int, int] = {}
+    seen = False
     for m in re.finditer(r'^testcell_frames_total\{[^}]*id="0x([0-9A-Fa-f]+)"[^}]*\} ([0-9.e+]+)$',
                          text, re.M):
         seen = True
         if int(m[1], 16) in sim_ids:
-            total += int(float(m[2]))
-    return total if seen else None
+            by_id[int(m[1], 16)] = int(float(m[2]))
+    return by_id if seen else None
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -234,6 +238,9 @@ def soak_engine(engine: str, seconds: float, state_dir: Path, speed: float, grou
                                      "--engine", engine, "--bus", bus, "--speed", f"{speed:g}"],
                                     cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
                                     stderr=subprocess.PIPE, text=True)
+        start_by = time.monotonic() + 120  # the simulator starts (its plants settle) first
+        while counter.count == 0 and time.monotonic() < start_by and sim_proc.poll() is None:
+            time.sleep(0.05)
         t_sim = time.monotonic()
         time.sleep(min(10.0, seconds / 4))  # warm-up: buffers and caches fill once
         rss_warm = rss_mb(up.pid)
@@ -269,14 +276,19 @@ def soak_engine(engine: str, seconds: float, state_dir: Path, speed: float, grou
     m = re.findall(r"sim sent (\d+) frames", sim_log)
     sent = int(m[-1]) if m else None
     received = h["frames"] - h0["frames"]
+    over: dict[str, int] = {}
     if by_id0 is not None and by_id1 is not None:
-        received = by_id1 - by_id0  # the simulator's frames only
+        got = {k: v - by_id0.get(k, 0) for k, v in by_id1.items()}
+        received = sum(got.values())  # the simulator's frames only
+        over = {f"0x{k:X}": n - counter.by_id.get(k, 0) for k, n in got.items()
+                if n != counter.by_id.get(k, 0)}
     sim_s = re.findall(r"at t=([\d.]+) s", sim_log)
     return {
         "engine": engine, "seconds": round(sim_wall, 1), "speed": speed,
         "sim_sent": sent, "wire_frames": counter.count, "runtime_frames": received,
         "lost": max(0, sent - received) if sent is not None else None,
         "counted_beyond_sent": max(0, received - sent) if sent is not None else None,
+        "runtime_minus_wire_by_id": over,
         "bus_fps": round(counter.count / sim_wall) if sim_wall else 0,
         "tick_overruns": h.get("tick_overruns", "not counted on this branch"),
         "stream_messages": ws_got[0], "stream_dropped": ws_got[1],

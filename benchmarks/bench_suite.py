@@ -40,6 +40,10 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path[:0] = [str(ROOT), str(HERE)]
 
+#: BENCHMARKS.md below this line is kept when the suite rewrites the file (runs recorded by
+#: hand: the 30-minute soak, benchmarks run on their own)
+KEEP_MARK = "<!-- recorded runs: kept when bench_suite.py rewrites this file -->"
+
 #: A private group and port, so the flood meets no other cell on this machine.
 FLOOD_BUS = "udp_multicast:239.74.163.250:43250"
 MEMORY_BUS = "udp_multicast:239.74.163.251:43251"
@@ -335,6 +339,14 @@ def report(m: dict, e2e: list[dict], scripts: dict, sweep: dict, blocks: list[di
     return "\n".join(lines)
 
 
+def write_report(path: Path, text: str) -> None:
+    """Write the report, keeping what stands below :data:`KEEP_MARK` in the old file."""
+    old = path.read_text() if path.exists() else ""
+    if KEEP_MARK in old:
+        text = text.rstrip("\n") + "\n\n" + old[old.index(KEEP_MARK):]
+    path.write_text(text)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="shorter runs")
@@ -371,8 +383,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.report_only:
         raw = json.loads(Path(args.out).with_suffix(".json").read_text())
-        Path(args.out).write_text(report(raw["machine"], raw["e2e"], raw["scripts"], raw["sweep"],
-                                         raw["blocks"], raw["replay_x"], raw["memory"], raw["quick"]))
+        write_report(Path(args.out), report(raw["machine"], raw["e2e"], raw["scripts"], raw["sweep"],
+                                            raw["blocks"], raw["replay_x"], raw["memory"],
+                                            raw["quick"]))
         print(f"wrote {args.out}")
         return 0
     m = machine()
@@ -393,7 +406,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  RSS {mem['start_mb']:.0f} -> {mem['end_mb']:.0f} MB", flush=True)
     m["load at end (1 min)"] = f"{os.getloadavg()[0]:.2f}" if hasattr(os, "getloadavg") else "?"
     text = report(m, e2e, scripts, sweep, blocks, replay_x, mem, args.quick)
-    Path(args.out).write_text(text)
+    write_report(Path(args.out), text)
     raw = {"machine": m, "e2e": e2e, "scripts": scripts, "sweep": sweep, "blocks": blocks,
            "replay_x": replay_x, "memory": mem, "quick": args.quick}
     Path(args.out).with_suffix(".json").write_text(json.dumps(raw, indent=1))

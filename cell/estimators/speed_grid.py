@@ -49,7 +49,7 @@ class SpeedGrid:
     """
 
     def __init__(self, design: Callable[[float], tuple[LinearPeriodic, Any]], *,
-                 ahead: int = 3, keep: int = 24, hysteresis: float = 0.25,
+                 ahead: int = 3, keep: int = 12, hysteresis: float = 0.25,
                  frame_len: int = 4) -> None:
         if ahead < 0 or keep < 2 * ahead + 1 or not 0.0 <= hysteresis < 0.5:
             raise ValueError(f"a speed grid needs ahead >= 0, keep >= 2 ahead + 1 and "

@@ -85,7 +85,12 @@ class SpeedGrid:
             got = self._nodes.get(i)
             if got is not None:
                 return got
-            got = self._design(self.speed(i))
+            try:
+                got = self._design(self.speed(i))
+            except Exception:
+                with self._lock:
+                    self._making.pop(i, None)
+                raise
             lp = got[0]
             n = self.frame_len
             for j in range(0, lp.period, n):  # the frames of the stream, multiplied out

@@ -14,7 +14,6 @@ must be faster than real time.
 from __future__ import annotations
 
 import math
-import sys
 import time
 
 from cell.estimators.catalyst import TWCObserver
@@ -56,4 +55,9 @@ def main(seconds: float = 600.0) -> None:
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else 600.0)
+    import argparse
+
+    _p = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    _p.add_argument("seconds", nargs="?", type=float, default=600.0,
+                    help="simulated seconds of the run (default 600)")
+    main(_p.parse_args().seconds)

@@ -140,4 +140,9 @@ def main(clients: list[int]) -> None:
 
 
 if __name__ == "__main__":
-    main([int(a) for a in sys.argv[1:]] or [50])
+    import argparse
+
+    _p = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    _p.add_argument("clients", nargs="*", type=int, default=[50],
+                    help="numbers of simultaneous dashboard clients to time (default 50)")
+    main(_p.parse_args().clients)

@@ -14,7 +14,6 @@ space), so 500 000 / 138 ≈ 3623 frames/s. The cell's own traffic is ~360 frame
 
 from __future__ import annotations
 
-import sys
 import time
 
 from cell import app
@@ -54,4 +53,9 @@ def main(seconds: float = 600.0) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else 600.0)
+    import argparse
+
+    _p = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    _p.add_argument("seconds", nargs="?", type=float, default=600.0,
+                    help="simulated seconds of traffic (default 600)")
+    main(_p.parse_args().seconds)

@@ -15,7 +15,6 @@ Goals from the issue: within 3x of the hand-written step, at least 10x faster th
 from __future__ import annotations
 
 import random
-import sys
 import time
 
 from cell.scripts.dialects import load_script, shipped_scripts
@@ -97,4 +96,9 @@ def main(cycles: int = 20_000) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 20_000)
+    import argparse
+
+    _p = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    _p.add_argument("cycles", nargs="?", type=int, default=20_000,
+                    help="script cycles timed (default 20000)")
+    main(_p.parse_args().cycles)

@@ -19,7 +19,6 @@ filterpy, no slower than simdkalman; issue 7 keeps it at >= 400x (what it was be
 
 from __future__ import annotations
 
-import sys
 import time
 
 import numpy as np
@@ -147,4 +146,9 @@ def main(subset: int = 4) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 4)
+    import argparse
+
+    _p = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    _p.add_argument("repeats", nargs="?", type=int, default=4,
+                    help="repeats of each timing, best taken (default 4)")
+    main(_p.parse_args().repeats)

@@ -12,7 +12,8 @@ In the angle domain a lag of time constant :math:`\tau` at engine speed :math:`\
 full-measurement observers (eqs. 6-8, :math:`h` = 3, :math:`\tilde L = -4/\tau`,
 :math:`\alpha_k^2 = 4/(k^2+1)`) in cascade (Figure 2): the first reconstructs the
 intermediate variable from the sensor, the second the manifold AFR :math:`w` from it. The
-gains are redesigned when the engine speed moves by more than 1 %. Outputs:
+gains are those of the 1 % speed band the engine runs in, held with hysteresis and designed
+ahead by a background thread (:mod:`cell.estimators.speed_grid`). Outputs:
 
 - ``AFR_MANIFOLD_EST``: :math:`\hat w` at the last sample;
 - ``AFR_HARM_1..3``: :math:`E(k) = \sqrt{|c_k|^2 + |c_{-k}|^2} = \sqrt 2 |c_k|` (Figures 6, 8);
@@ -51,6 +52,7 @@ again). Either is counted and the last few are listed in :meth:`state` (``events
 from __future__ import annotations
 
 import collections
+import functools
 import logging
 import math
 from typing import Any
@@ -67,6 +69,7 @@ from cell.estimators.periodic import (
     design_full,
     design_partial,
 )
+from cell.estimators.speed_grid import SpeedGrid, shared_grid
 
 log = logging.getLogger(__name__)
 
@@ -76,9 +79,6 @@ CYCLE = int(720 / SAMPLE_DEG)
 STEP = math.radians(SAMPLE_DEG)
 FIRING_ORDER = (1, 3, 4, 2)
 
-#: speed bands whose observer designs are kept (oldest dropped first): a drive sweeps
-#: hundreds of 1 % bands, and memory must not grow with it
-MAX_DESIGNS = 8
 #: Plausible crank speeds of the rod observer's samples, rpm
 ROD_SAMPLE_RANGE = (0.0, 12000.0)
 
@@ -88,6 +88,20 @@ def _firing_deg(order: tuple[int, ...] = FIRING_ORDER) -> np.ndarray:
     for pos, cyl in enumerate(order):
         deg[cyl - 1] = pos * 720.0 / N_CYL
     return deg
+
+
+def uego_design(tau1: float, tau2: float, h: int, ltilde: float, alpha: float, rpm: float
+                ) -> tuple[LinearPeriodic, tuple[PeriodicObserver, PeriodicObserver]]:
+    """The UEGO cascade's gains at ``rpm`` (a band of the speed grid): the lags in radians
+    of crank angle; the cascade and its two stages (sensor side first, Figure 2)."""
+    omega_e = rpm * math.pi / 30.0
+    stages = []
+    for tau in (tau2, tau1):
+        ta = tau * omega_e
+        A, A0, C = [[-1.0 / ta]], [[1.0 / ta]], [[1.0]]
+        g = design_full(A, A0, C, [[-ltilde / ta]], [alpha / (k * k + 1) for k in range(h + 1)])
+        stages.append(PeriodicObserver(A, A0, C, h, 0.5, g, STEP))
+    return cascade(stages[0], stages[1]), (stages[0], stages[1])
 
 
 class _StreamObserver(Block):
@@ -184,44 +198,33 @@ class UegoInversion(_StreamObserver):
         for key, value in checked.items():
             setattr(self, key, value)
         self.rpm: float | None = None
-        self._designs: dict[int, tuple[LinearPeriodic, PeriodicObserver, PeriodicObserver]] = {}
-        self._lp: LinearPeriodic | None = None
+        self._grid: SpeedGrid | None = None
+        self._lp = None
         self._obs: PeriodicObserver | None = None
         self._first: PeriodicObserver | None = None
         self._bucket: int | None = None
         self._w_last = math.nan
         self._reset_windows()
         self._announce_reset = False
+        self._redesign()
 
     # -- design -------------------------------------------------------------------------
     def _redesign(self) -> None:
-        self._designs.clear()
         self._bucket = None
+        key = (self.tau1, self.tau2, self.h, self.ltilde, self.alpha)
+        self._grid = shared_grid(key, functools.partial(uego_design, *key))
         if self.z is not None and self._first is not None and self._first.h != self.h:
             self._reset()  # a new number of harmonics: a new state
         if self.rpm is not None:
             self._design_for(self.rpm)
 
     def _design_for(self, rpm: float) -> None:
-        """Gains at ``rpm`` (cached per 1 % speed band): the lags in radians of crank angle."""
-        bucket = int(round(math.log(rpm) / math.log(1.01)))
+        """Gains of the 1 % speed band at ``rpm`` (the lags in radians of crank angle), held
+        with hysteresis and designed off the hot path (:mod:`cell.estimators.speed_grid`)."""
+        bucket = self._grid.select(rpm, self._bucket)
         if bucket == self._bucket:
             return
-        got = self._designs.get(bucket)
-        if got is None:
-            omega_e = 1.01**bucket * math.pi / 30.0
-            stages = []
-            for tau in (self.tau2, self.tau1):  # sensor output side first (Figure 2)
-                ta = tau * omega_e
-                A, A0, C = [[-1.0 / ta]], [[1.0 / ta]], [[1.0]]
-                g = design_full(A, A0, C, [[-self.ltilde / ta]],
-                                [self.alpha / (k * k + 1) for k in range(self.h + 1)])
-                stages.append(PeriodicObserver(A, A0, C, self.h, 0.5, g, STEP))
-            got = (cascade(stages[0], stages[1]), stages[0], stages[1])
-            if len(self._designs) >= MAX_DESIGNS:  # each holds ~1 MB of per-angle tables
-                self._designs.pop(next(iter(self._designs)))
-            self._designs[bucket] = got
-        self._lp, self._first, self._obs = got
+        self._lp, (self._first, self._obs) = self._grid.design(bucket)
         self._bucket = bucket
         self._owner_of = self._owners()
 

@@ -306,6 +306,146 @@ def rk4(x: list[float], u: Sequence[float], p: SIAirPathParams, h: float, n: int
     return x
 
 
+def plant_rk4(p: SIAirPathParams):
+    """:func:`rk4` of the five-state air path for the parameters ``p``, as one function.
+
+    The same arithmetic as :func:`rk4` over :func:`airpath_rhs` and :func:`flows`, operation
+    for operation (so the same floats), with the parts inlined, the constants of ``p`` and
+    the terms of the held input ``u`` computed once per call instead of at every one of the
+    ``4 n`` evaluations: the plant's hot path (40 evaluations per 10 ms step).
+    """
+    g, R = ap.GAMMA_AIR, ap.R_AIR
+    ge, Re = p.gamma_e, p.R_e
+    crit_a = (2.0 / (g + 1.0)) ** (g / (g - 1.0))
+    k_a = 2.0 * g / (g - 1.0)
+    e1_a, e2_a = 2.0 / g, (g + 1.0) / g
+    crit_e = (2.0 / (ge + 1.0)) ** (ge / (ge - 1.0))
+    k_e = 2.0 * ge / (ge - 1.0)
+    e1_e, e2_e = 2.0 / ge, (ge + 1.0) / ge
+    th_lin = p.throttle_pr_lin
+    psi_lin_th = math.sqrt(k_a * (th_lin ** e1_a - th_lin ** e2_a))
+    den_th = 1.0 - th_lin
+    wg_lin = 0.99
+    psi_lin_wg = math.sqrt(k_e * (wg_lin ** e1_e - wg_lin ** e2_e))
+    den_wg = 1.0 - wg_lin
+    T_ic_guess = p.T_coolant + 15.0
+    sq_guess = math.sqrt(R * T_ic_guess)
+    p_amb, k_af, k_ic, k_es = p.p_amb, p.k_af, p.k_ic, p.k_es
+    w_ref, omega_ref, k_pr, offset = p.comp_w_ref, p.comp_omega_ref, p.comp_k_pr, p.comp_flow_offset
+    sq_ref = math.sqrt(298.0 / p.T_amb)
+    T_amb, comp_eff = p.T_amb, p.comp_efficiency
+    e_c = (g - 1.0) / g
+    eff_ic, T_cool = p.ic_effectiveness, p.T_coolant
+    cp_a = ap.CP_AIR
+    c_eta, r_c = p.c_eta_vol + 0.0, p.r_c
+    inv_ge = 1.0 / ge
+    r_c1 = r_c - 1.0
+    v_cyl, n_cyl = p.v_cyl, p.cylinders
+    afr_s, c1 = p.afr_s, p.c1
+    dT_comb = p.dT_comb
+    t_area = p.turbine_area
+    sq_lin = math.sqrt(0.02)
+    wg_area = p.wastegate_area
+    cp_e, t_eff = p.cp_e, p.turbine_efficiency
+    e_t = (ge - 1.0) / ge
+    h_im, T_wall = p.h_im, p.T_wall_im
+    cv = R / (g - 1.0)
+    cp = cv + R
+    V_im = p.V_im
+    G1, G2 = g * R / V_im, (g - 1.0) / V_im
+    V_ic, V_em = p.V_ic, p.V_em
+    J, eta_m, k_f = p.J_tc, p.eta_m, p.k_fric
+    sqrt, cos, radians = math.sqrt, math.cos, math.radians
+
+    def ff_a(pr: float) -> float:
+        pr = max(pr, crit_a)
+        if pr >= 1.0:
+            return 0.0
+        if pr > th_lin:
+            return psi_lin_th * (1.0 - pr) / den_th
+        return sqrt(k_a * (pr ** e1_a - pr ** e2_a))
+
+    def ff_e(pr: float) -> float:
+        pr = max(pr, crit_e)
+        if pr >= 1.0:
+            return 0.0
+        if pr > wg_lin:
+            return psi_lin_wg * (1.0 - pr) / den_wg
+        return sqrt(k_e * (pr ** e1_e - pr ** e2_e))
+
+    def run(x: list[float], u, h: float, steps: int) -> list[float]:
+        alpha, u_wg, speed, lam = u[0], u[1], u[2], u[3]
+        n = speed / 60.0
+        a = min(max(alpha, 0.0), 90.0)
+        area_th = p.throttle_a_max * (1.0 - cos(radians(a))) + p.throttle_a_leak
+        shape = 1.0 - p.eta_vol_speed_shape * (n / p.eta_vol_speed_ref - 1.0) ** 2
+        inv = 1.0 / (max(lam, 0.05) * afr_s)
+        charge_num, charge_den = 1.0 + c1 * inv, 1.0 + inv
+        lam_c = max(lam, 0.05)
+        eo = 1.0 + 1.0 / (lam_c * afr_s)
+        dT_phi = dT_comb * min(1.0 / lam_c, 1.05)
+        area_wg = wg_area * min(max(u_wg, 0.0), 1.0)
+        half, sixth = 0.5 * h, h / 6.0
+
+        def rhs(p_ic: float, p_im: float, T_im: float, p_em: float, omega: float):
+            if p_im <= p_ic:
+                w_th0 = area_th * p_ic / sq_guess * ff_a(p_im / p_ic)
+            else:
+                w_th0 = -area_th * p_im / sq_guess * ff_a(p_ic / p_im)
+            p_af = p_amb - k_af * w_th0 * abs(w_th0)
+            p_c = p_ic + k_ic * w_th0 * abs(w_th0)
+            pr_c = p_c / p_af
+            pr0 = 1.0 + k_pr * (omega / omega_ref) ** 2
+            r = min(max((pr_c - 1.0) / max(pr0 - 1.0, 0.02), -3.0), 1.0)
+            w_max = w_ref * max(omega, 0.0) / omega_ref * (p_af / 101_325.0) * sq_ref
+            w_c = w_max * (1.0 - r * abs(r)) + offset
+            T_c = T_amb * (1.0 + (max(pr_c, 1e-3) ** e_c - 1.0) / comp_eff)
+            T_ic = T_c - eff_ic * (T_c - T_cool)
+            w_th = w_th0 * sqrt(T_ic_guess / T_ic)
+            P_c = w_c * cp_a * (T_c - T_amb)
+            ratio = max(p_em / p_im, 1e-3) ** inv_ge
+            eta = c_eta * (r_c - ratio) / r_c1 * shape
+            cac = eta * p_im * v_cyl / (R * T_im) * charge_num / charge_den
+            w_ac = cac * n_cyl * n / 2.0
+            w_eo = w_ac * eo
+            T_em = T_im + dT_phi * (0.6 + 0.5 * w_ac / (w_ac + 0.03))
+            p_es = p_amb + k_es * w_eo * abs(w_eo)
+            z = 1.0 - min(p_es / p_em, 1.0) ** 1.5
+            root = sqrt(z) if z >= 0.02 else z / sq_lin
+            w_t = t_area * p_em / sqrt(Re * T_em) * root
+            if p_es <= p_em:
+                w_wg = area_wg * p_em / sqrt(Re * T_em) * ff_e(p_es / p_em)
+            else:
+                w_wg = -area_wg * p_es / sqrt(Re * T_em) * ff_e(p_em / p_es)
+            pr_t = min(p_es / p_em, 1.0)
+            P_t = w_t * cp_e * T_em * t_eff * (1.0 - min(pr_t, 1.0) ** e_t)
+            heat = h_im * (T_wall - T_im)
+            return (R * T_ic / V_ic * (w_c - w_th),
+                    G1 * (w_th * T_ic - w_ac * T_im) + G2 * heat,
+                    R * T_im / (p_im * V_im * cv) * (w_th * (cp * T_ic - cv * T_im)
+                                                     - R * w_ac * T_im + heat),
+                    Re * T_em / V_em * (w_eo - (w_t + w_wg)),
+                    (eta_m * P_t - P_c) / (J * max(omega, 500.0)) - k_f * omega / J)
+
+        x0, x1, x2, x3, x4 = x
+        for _ in range(steps):
+            a0, a1, a2, a3, a4 = rhs(x0, x1, x2, x3, x4)
+            b0, b1, b2, b3, b4 = rhs(x0 + half * a0, x1 + half * a1, x2 + half * a2,
+                                     x3 + half * a3, x4 + half * a4)
+            c0, c1_, c2, c3, c4 = rhs(x0 + half * b0, x1 + half * b1, x2 + half * b2,
+                                      x3 + half * b3, x4 + half * b4)
+            d0, d1, d2, d3, d4 = rhs(x0 + h * c0, x1 + h * c1_, x2 + h * c2, x3 + h * c3,
+                                     x4 + h * c4)
+            x0 = x0 + sixth * (a0 + 2.0 * b0 + 2.0 * c0 + d0)
+            x1 = x1 + sixth * (a1 + 2.0 * b1 + 2.0 * c1_ + d1)
+            x2 = x2 + sixth * (a2 + 2.0 * b2 + 2.0 * c2 + d2)
+            x3 = x3 + sixth * (a3 + 2.0 * b3 + 2.0 * c3 + d3)
+            x4 = x4 + sixth * (a4 + 2.0 * b4 + 2.0 * c4 + d4)
+        return [x0, x1, x2, x3, x4]
+
+    return run
+
+
 def initial_guess(p: SIAirPathParams, speed: float, alpha: float) -> list[float]:
     """A state near the operating point, to start the stationary search from."""
     p_im = p.p_amb * min(0.25 + alpha / 90.0, 1.1)
@@ -445,6 +585,7 @@ class SIAirPath(Plant):
         self._k_noise = 0
         self.crank_phase = 0.0
         self.x: list[float] = []
+        self._rk4 = plant_rk4(p)
 
     def _inputs(self, u: Mapping[str, float]) -> tuple[float, float, float]:
         speed = u.get("ENGINE_SPEED", 1800.0)
@@ -477,7 +618,7 @@ class SIAirPath(Plant):
 
     def _advance(self, speed: float, load: float, lam: float) -> None:
         p = self.params
-        self.x = rk4(self.x, self._u, p, p.period / p.substeps, p.substeps)
+        self.x = self._rk4(self.x, self._u, p.period / p.substeps, p.substeps)
         self.alpha += self._a_th * (throttle_command(load, speed, self.x[0], p) - self.alpha)
         self.u_wg += self._a_wg * (self.ecu.command(load, self.x[0], p.period) - self.u_wg)
         self._u = (self.alpha, self.u_wg, speed, lam)

@@ -25,7 +25,7 @@ from typing import Any
 import can
 import numpy as np
 
-from cell.runtime import units
+from cell.runtime import stream_time, units
 from cell.runtime.blocks import RATE_NAMES, Block
 from cell.runtime.channels import INVALID, OK, STALE, Channel
 from cell.bus.dbc import CellDatabase, FrameDecodeError
@@ -37,6 +37,7 @@ from cell.runtime.channel_params import check_channel_params
 from cell.runtime.plausibility import Plausibility
 from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_streams
 from cell.runtime.senders import SenderWatch
+from cell.runtime.stream_codec import fast_unpacker
 from cell.runtime.store import ChannelStore, Reading
 
 _EPS = 1e-9
@@ -83,12 +84,14 @@ class Rates:
 class _SampleRoute:
     """One sample stream in the runtime: its layout, its order tracker and its consumers."""
 
-    __slots__ = ("layout", "tracker", "blocks")
+    __slots__ = ("layout", "tracker", "blocks", "unpack")
 
-    def __init__(self, layout: SampleLayout, window: int) -> None:
+    def __init__(self, layout: SampleLayout, window: int, message: Any = None) -> None:
         self.layout = layout
         self.tracker = SampleTracker(layout, window=window)
         self.blocks: list[Block] = []
+        #: the frame's samples from its bytes without cantools, when the layout allows
+        self.unpack = fast_unpacker(message, layout) if message is not None else None
 
 
 def _checked(block: Block, outputs: Any, chans: dict[str, Channel]) -> dict[str, float]:
@@ -277,23 +280,30 @@ class Runtime:
         key = (m.frame_id, bool(m.is_extended_frame))
         route = self._streams.get(key)
         if route is None:
-            route = self._streams[key] = _SampleRoute(layout, self._stream_window)
+            route = self._streams[key] = _SampleRoute(layout, self._stream_window, m)
         return route
 
     def _ingest_stream(self, route: _SampleRoute, message: Any, data: bytes, ts: float) -> None:
-        """Hand a stream frame's samples, in angle order, to the blocks that consume it."""
-        try:
-            values = self.db.decode_payload(message, bytes(data))
-        except FrameDecodeError as exc:
-            self.counters.count_decode_error(exc.kind)
-            return
-        index, samples = route.layout.unpack(values)
+        """Hand a stream frame's samples, in angle order, to the blocks that consume it.
+
+        The blocks' time on the samples counts in their ``step_time`` and in the work of
+        the next tick (:func:`cell.runtime.stream_time.count`)."""
+        if route.unpack is not None and len(data) == 8:
+            index, samples = route.unpack(bytes(data))
+        else:
+            try:
+                values = self.db.decode_payload(message, bytes(data))
+            except FrameDecodeError as exc:
+                self.counters.count_decode_error(exc.kind)
+                return
+            index, samples = route.layout.unpack(values)
         name = route.layout.name
         faults = self.faults
         for event in route.tracker.push(index, samples, ts):
             for block in route.blocks:
                 if faults.by_block and faults.waiting(block.name, ts) is not None:
                     continue  # backing off after a fault: its samples wait for the retry
+                started = time.perf_counter()
                 try:
                     if event[0] == "samples":
                         block.samples(name, event[1], event[2], event[3])
@@ -305,6 +315,7 @@ class Runtime:
                 except Exception as exc:  # any defect of one block faults that block alone
                     self.counters.block_errors[block.name] += 1
                     faults.exception(block, exc, ts)
+                stream_time.count(self, block.name, time.perf_counter() - started)
 
     def block(self, name: str, family: str | None = None) -> Block:
         block = self.blocks.get(name)
@@ -466,7 +477,7 @@ class Runtime:
             if "MED" in ticking:
                 self._after_med_tick(t)
             if work:
-                self._count_tick(time.perf_counter() - started, ticking)
+                self._count_tick(time.perf_counter() - started + stream_time.take(self), ticking)
         self._next_due = min(index[r] / f for r, f in hz)
 
     def _count_tick(self, seconds: float, ticking: frozenset[str]) -> None:

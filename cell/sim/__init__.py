@@ -102,12 +102,13 @@ def _drain(bus: CellBus, sim: Simulator, until: float | None) -> None:
 
 
 def run(bus: CellBus, settings: Settings, stop_event: threading.Event | None = None,
-        db: CellDatabase | None = None) -> Composition:
+        db: CellDatabase | None = None, counts: dict[str, int] | None = None) -> Composition:
     """Run the engine of ``settings`` on ``bus`` in real time (or ``settings.speed`` faster).
 
     Frames are stamped with the wall-clock start time plus simulation time, so at speed 1 a
     frame's timestamp is its send time. Stops after ``settings.duration`` simulation seconds
     (``None``: until ``stop_event`` is set). Returns the composition in its final state.
+    ``counts["sent"]`` (when given) counts the frames put on the bus, as they go.
     """
     speed = settings.speed
     if not speed > 0 or not math.isfinite(speed):
@@ -120,6 +121,8 @@ def run(bus: CellBus, settings: Settings, stop_event: threading.Event | None = N
                 "" if settings.duration is None else f", {settings.duration:g} s")
     seen: dict[str, float] = {}
     _watch(sim, seen)
+    counts = counts if counts is not None else {}
+    counts.setdefault("sent", 0)
     while True:
         if stop_event is not None and stop_event.is_set():
             break
@@ -130,8 +133,10 @@ def run(bus: CellBus, settings: Settings, stop_event: threading.Event | None = N
             # idle until the next step is due, applying demands as they arrive
             _drain(bus, sim, min(due, time.monotonic() + 0.05))
             continue
-        for msg in sim.frames():
+        frames = sim.frames()
+        for msg in frames:
             bus.send(msg)
+        counts["sent"] += len(frames)
         _drain(bus, sim, None)
         sim.step()
         _watch(sim, seen)
@@ -227,10 +232,12 @@ def main(args: argparse.Namespace, settings: Settings | None = None,
     if threading.current_thread() is threading.main_thread():
         # SIGTERM (testcell up stopping, docker stop) ends the run like Ctrl-C: bus closed
         signal.signal(signal.SIGTERM, _interrupt)
+    counts = {"sent": 0}
     try:
-        run(bus, sim_settings, stop_event=stop_event)
+        run(bus, sim_settings, stop_event=stop_event, counts=counts)
     except KeyboardInterrupt:
         logger.info("sim stopped")
     finally:
         bus.shutdown()
+        logger.info("sim sent %d frames", counts["sent"])
     return 0

@@ -19,6 +19,7 @@ from cell.bus.dbc import CellDatabase, FrameDecodeError
 from cell.core.errors import ConfigError
 from cell.plant.composition import Composition
 from cell.runtime.samples import SampleLayout, find_sample_streams
+from cell.sim.stream_encode import stream_encoder
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +71,8 @@ class Simulator:
             self.schedule.append((m, period, names))
         #: sample streams the plants produce: (plant, layout, samples not yet in a frame)
         self.streams: list[tuple[object, SampleLayout, list]] = []
+        #: each stream's bulk encoder (:mod:`cell.sim.stream_encode`), None: frame by frame
+        self._bulk: dict[str, object] = {}
         layouts = find_sample_streams([m for m in db.messages if NODE in (m.senders or [])])
         for p in plant.plants:
             for name in p.streams:
@@ -79,6 +82,7 @@ class Simulator:
                                       f"{name}, which no SIM message of the DBC carries")
                 skipped = [s for s in skipped if s != layout.message]
                 self.streams.append((p, layout, [None, np.empty(0), np.empty(0)]))
+                self._bulk[layout.name] = stream_encoder(db.message(layout.message), layout)
         if skipped:
             log.debug("engine %s sends none of %s", plant.name, ", ".join(skipped))
         #: received messages: frame key -> the signals of it that a plant consumes
@@ -141,7 +145,11 @@ class Simulator:
                 pend[2] = np.concatenate([pend[2], times])
             n = layout.n
             whole = (len(pend[1]) // n) * n
-            for j in range(0, whole, n):
+            bulk = self._bulk.get(layout.name)
+            msgs = bulk(pend[0], pend[1][:whole], pend[2][:whole], self.t0) if bulk and whole else None
+            for msg in msgs or ():
+                frames.append((msg.timestamp, len(frames), msg))
+            for j in range(0, whole if msgs is None else 0, n):
                 ts = self.t0 + float(pend[2][j + n - 1])
                 msg = self.db.encode(layout.message, layout.frame_values(pend[0] + j, pend[1][j:j + n]), ts)
                 frames.append((ts, len(frames), msg))

@@ -141,7 +141,7 @@ def test_metrics_parse_with_prometheus_client_and_carry_the_histograms(db):
     from prometheus_client.parser import text_string_to_metric_families
 
     rt = Runtime(db, native_filters())
-    client = TestClient(create_app(Cell(runtime=rt, bus="virtual:test")))
+    client = local_client(create_app(Cell(runtime=rt, bus="virtual:test")))
     t0 = round(time.time() - 2.0, 2)  # frames stamped with the wall clock, as udp_multicast does
     t = t0
     while t < t0 + 2.0 - 1e-9:
@@ -180,7 +180,7 @@ def test_values_whose_bus_time_is_not_the_wall_clock_give_no_latency(fed):
     from prometheus_client.parser import text_string_to_metric_families
 
     rt, _, _ = fed  # bus time from 0 s: a replayed log, a virtual bus
-    client = TestClient(create_app(Cell(runtime=rt, bus="virtual:test")))
+    client = local_client(create_app(Cell(runtime=rt, bus="virtual:test")))
     client.get("/channels")
     fams = {f.name: f for f in text_string_to_metric_families(client.get("/metrics").text)}
     counts = [s.value for s in fams["testcell_frame_to_api_seconds"].samples if s.name.endswith("_count")]

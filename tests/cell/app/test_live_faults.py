@@ -11,7 +11,7 @@ import time
 
 import can
 import pytest
-from fastapi.testclient import TestClient
+from tests.helpers.client import local_client
 
 from cell.app.cell import Cell
 from cell.app.live import Backoff, LiveCell
@@ -60,7 +60,7 @@ class Cellrig:
         self.bus = open_bus(f"virtual:{channel}")
         self.live = LiveCell(self.rt, self.bus, **live_options)
         self.cell = Cell(runtime=self.rt, bus=f"virtual:{channel}", live=self.live)
-        self.client = TestClient(create_app(self.cell))
+        self.client = local_client(create_app(self.cell))
         self.tx = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
         self.rx = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
         self.received: list[tuple[float, can.Message]] = []

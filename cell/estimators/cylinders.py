@@ -26,12 +26,15 @@ gains are redesigned when the engine speed moves by more than 1 %. Outputs:
   :math:`g_i = \min(|d_i|,\ |d_i| - \overline{|d_{j \ne i}|})`: large only for a cylinder
   that departs by itself (one cylinder off by :math:`3x` leaves the other three at
   :math:`x`, so :math:`g` is :math:`2x` for it and negative for them). A one-sided CUSUM
-  per cylinder, in units of the departures' own standard deviation :math:`\sigma` (tracked
-  from the phase-to-phase changes of :math:`d`, winsorised at :math:`3\sigma`, floored at
-  ``sigma_floor``), :math:`S_i \leftarrow \min(S_{max}, \max(0, S_i + (g_i - \delta)/\sigma
-  - k))` with :math:`\delta` = ``threshold`` (0.5 AFR, about 3.4 %) and :math:`k` = 0.5,
-  names cylinder :math:`i` when :math:`S_i` reaches ``confirm`` and it has led for
-  ``persist`` successive phases. A named cylinder stays named until its :math:`S_i`
+  per cylinder, in units of the departures' own uncertainty: their standard deviation
+  :math:`\sigma` (tracked from the phase-to-phase changes of :math:`d`, winsorised at
+  :math:`3\sigma`, floored at ``sigma_floor``) combined with how far :math:`d` moved over the
+  last engine cycle :math:`\Delta` (a departure still settling is not yet evidence),
+  :math:`S_i \leftarrow \min(S_{max}, \max(0, S_i + \min((g_i - \delta)/\sqrt{\sigma^2 +
+  \Delta^2} - k,\ \text{confirm}/\text{persist})))` with :math:`\delta` = ``threshold``
+  (0.5 AFR, about 3.4 %) and :math:`k` = 0.5, names cylinder :math:`i` when :math:`S_i`
+  reaches ``confirm`` (so after ``persist`` phases of evidence at least) and it has led
+  for ``persist`` successive phases. A named cylinder stays named until its :math:`S_i`
   returns to 0, or another cylinder is confirmed. A pattern where no cylinder stands out
   alone (two opposite cylinders equally off: all four depart equally) is *suspect*, never
   a name. It is not yet known (the channel has no value, or is invalid after a reset)
@@ -309,6 +312,7 @@ class UegoInversion(_StreamObserver):
         self._cusum = np.zeros(N_CYL)
         self._cusum_any = 0.0
         self._d_prev: np.ndarray | None = None
+        self._d_hist: collections.deque[np.ndarray] = collections.deque(maxlen=N_CYL + 1)
         self._var: float | None = None
         self.diag_state = SETTLING
         self.confidence = 0.0
@@ -350,10 +354,15 @@ class UegoInversion(_StreamObserver):
             return
         d = self.cyl_est - self.cyl_est.mean()
         sigma = self._track_variance(d, robust=True)
+        # a departure still moving is not yet evidence: its change over the last engine cycle
+        # (every window measured once since) widens the uncertainty it is judged against
+        self._d_hist.append(d.copy())
+        moving = float(np.max(np.abs(d - self._d_hist[0])))
         a = np.abs(d)
         others = (a.sum() - a) / (N_CYL - 1)
         g = np.minimum(a, a - others)
-        step = (g - self.threshold) / sigma - CUSUM_K
+        step = np.minimum((g - self.threshold) / math.hypot(sigma, moving) - CUSUM_K,
+                          self.confirm / self.persist)
         self._cusum = np.clip(self._cusum + step, 0.0, CUSUM_CAP * self.confirm)
         self._cusum_any = min(max(0.0, self._cusum_any + (a.max() - self.threshold) / sigma
                                   - CUSUM_K), CUSUM_CAP * self.confirm)

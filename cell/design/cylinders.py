@@ -65,9 +65,10 @@ from cell.plant.cylinders import N_CYL
 #: samples per engine cycle (6 deg) and harmonics fitted
 CYCLE = 120
 K = 7
-#: level (a chi-square of 6 degrees of freedom, mean 6) of the step test and of the
-#: coherence of the cycles' first three coefficients that shows the offset
-STEP_LEVEL = 60.0
+#: level of the step test and of the coherence of the cycles' first three coefficients that
+#: shows the offset (both about 1 for noise alone; a balanced engine's λ limit cycle gives
+#: less than 0.1)
+STEP_LEVEL = 16.0
 #: cycles a band (and the log) needs, and cycles dropped after the step
 MIN_CYCLES = 12
 SKIP_CYCLES = 3
@@ -188,11 +189,13 @@ def find_step(c: Cycles, cyl: int, path: str = "the log") -> float:
     speed band on its own (the pattern differs with speed); refuses a log that does not
     carry it."""
     key = _band_keys(c.rpm)
+    held = [b for b in np.unique(key) if np.count_nonzero(key == b) >= MIN_CYCLES]
+    if not held:
+        raise ConfigError(f"{path}: {len(c.t)} whole engine cycles of AFR_UEGO samples, but no "
+                          f"speed held (within {BAND:.0%}) for {MIN_CYCLES} of them")
     found, best_coh = [], 0.0
-    for b in np.unique(key):
+    for b in held:
         idx = np.nonzero(key == b)[0]
-        if len(idx) < MIN_CYCLES:
-            continue
         idx = idx[np.argsort(c.t[idx])]
         start, coh = _change_point(c.coef[idx, :3])
         best_coh = max(best_coh, coh)

@@ -16,8 +16,8 @@ with a known offset on one cylinder identifies both:
    split of the band's cycles that best separates
    the mean coefficients before and after it (a change-point test against the cycles'
    scatter, :data:`STEP_LEVEL`; none: the offset is on from the start), so a log whose
-   offset starts part-way through is fine; the first :data:`SKIP_CYCLES` after it are
-   dropped (the sensor's transient); the earliest band's step counts. A log none of whose
+   offset starts part-way through is fine; the first :data:`SKIP_CYCLES` after it, and at
+   least :data:`SKIP_SECONDS`, are dropped (the sensor's transient); the earliest band's step counts. A log none of whose
    bands shares a pattern after its step (the mean coefficients' energy below
    :data:`STEP_LEVEL` times its standard error) is refused: it does not carry the known
    offset.
@@ -72,6 +72,9 @@ STEP_LEVEL = 16.0
 #: cycles a band (and the log) needs, and cycles dropped after the step
 MIN_CYCLES = 12
 SKIP_CYCLES = 3
+#: and the least time dropped after the step, s (a slow sensor's transient: two lags of
+#: 50 ms settle to 2 % in about 0.3 s)
+SKIP_SECONDS = 0.35
 #: width of a speed band (relative) and the held-out share of each band
 BAND = 0.05
 HOLD_OUT = 0.3
@@ -317,7 +320,7 @@ def fit(bands_: Sequence[Band], cyl: int, offset: float) -> tuple[list[float], f
         pred = amplitude(mean, offset) * _window(grid, cyl) * _lags(rpm, 0.025, 0.02)
         phases0.append(float(grid[np.argmin(np.abs(pred - coef).sum(axis=1))]))
     best = None
-    for t0 in ((0.025, 0.02), (0.06, 0.01), (0.012, 0.005)):
+    for t0 in ((0.025, 0.02), (0.06, 0.01), (0.012, 0.005), (0.05, 0.04), (0.1, 0.03)):
         x0 = np.array([*t0, *phases0])
         lo = [TAU_BOUNDS[0]] * 2 + [p - 360.0 for p in phases0]
         hi = [TAU_BOUNDS[1]] * 2 + [p + 360.0 for p in phases0]
@@ -350,7 +353,8 @@ def design_logs(logs: Sequence[str | Path | Sequence[can.Message]], known: tuple
         t_step = find_step(c, cyl, name)
         k = int(np.searchsorted(c.t, t_step))
         steps.append({"log": name, "t": round(t_step, 4), "cycle": k, "cycles": int(len(c.t))})
-        parts.append(c.select(np.arange(k + SKIP_CYCLES, len(c.t))))
+        after = np.arange(k + SKIP_CYCLES, len(c.t))
+        parts.append(c.select(after[c.t[after] >= t_step + SKIP_SECONDS]))
     allc = Cycles(*(np.concatenate([getattr(p, f) for p in parts])
                     for f in ("t", "rpm", "mean", "coef")))
     bs = bands(allc)

@@ -23,9 +23,9 @@ gains are redesigned when the engine speed moves by more than 1 %. Outputs:
 - ``IMBALANCE_CYL``: a cylinder named only once a sequential test has confirmed it (0:
   none). At every closed exhaust phase, with :math:`d_i` the departure of cylinder
   :math:`i`'s AFR from the mean of the four, its evidence is
-  :math:`g_i = \min(|d_i|,\ |d_i| - \overline{|d_{j \ne i}|})`: large only for a cylinder
-  that departs by itself (one cylinder off by :math:`3x` leaves the other three at
-  :math:`x`, so :math:`g` is :math:`2x` for it and negative for them). A one-sided CUSUM
+  :math:`g_i = |d_i| - \max_{j \ne i}|d_j|`: large only for a cylinder that departs by
+  itself (one cylinder off by :math:`3x` leaves the other three at :math:`x`, so :math:`g`
+  is :math:`2x` for it and negative for them; two cylinders about level give neither any). A one-sided CUSUM
   per cylinder, in units of the departures' own uncertainty: their standard deviation
   :math:`\sigma` (tracked from the phase-to-phase changes of :math:`d`, winsorised at
   :math:`3\sigma`, floored at ``sigma_floor``) combined with how far :math:`d` moved over the
@@ -359,7 +359,7 @@ class UegoInversion(_StreamObserver):
         self._d_hist.append(d.copy())
         moving = float(np.max(np.abs(d - self._d_hist[0])))
         a = np.abs(d)
-        others = (a.sum() - a) / (N_CYL - 1)
+        others = np.array([np.delete(a, i).max() for i in range(N_CYL)])
         g = np.minimum(a, a - others)
         step = np.minimum((g - self.threshold) / math.hypot(sigma, moving) - CUSUM_K,
                           self.confirm / self.persist)

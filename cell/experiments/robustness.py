@@ -107,7 +107,7 @@ class Timing:
     eval_duration: float
 
 
-SHORT = Timing(hold=2.2, design_on=0.6, eval_on=1.0, eval_duration=3.2)
+SHORT = Timing(hold=2.4, design_on=0.6, eval_on=1.0, eval_duration=3.2)
 FULL = Timing(hold=4.0, design_on=1.0, eval_on=2.0, eval_duration=6.0)
 
 

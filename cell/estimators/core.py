@@ -47,6 +47,7 @@ core's extended steps take.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import itertools
 import logging
@@ -67,6 +68,37 @@ log = logging.getLogger(__name__)
 EIG_FLOOR_REL = 1e3 * np.finfo(float).eps
 
 Matrix = np.ndarray | Callable[..., Any] | None
+
+#: what a step that runs inside its caller's ``np.errstate`` enters instead of its own
+_QUIET = contextlib.nullcontext()
+
+#: Largest state dimension whose covariance guard runs its Cholesky test in plain floats
+#: (faster than a LAPACK call on a small matrix).
+_SMALL = 8
+
+
+def _pd_above(a: list[list[float]], eig_floor: float) -> bool:
+    """Whether the symmetric matrix ``a`` (nested lists) minus :math:`2 f' I` has a Cholesky
+    factor, :math:`f' = \max(\text{eig\_floor}, \text{EIG\_FLOOR\_REL}\,\mathrm{tr}\,a)`."""
+    n = len(a)
+    shift = 2.0 * max(eig_floor, EIG_FLOOR_REL * sum(a[i][i] for i in range(n)))
+    L: list[list[float]] = []
+    for i in range(n):
+        ai, row = a[i], []
+        for j in range(i):
+            lj = L[j]
+            v = ai[j]
+            for k in range(j):
+                v -= row[k] * lj[k]
+            row.append(v / lj[j])
+        d = ai[i] - shift
+        for k in range(i):
+            d -= row[k] * row[k]
+        if not d > 0.0:  # NaN fails too
+            return False
+        row.append(math.sqrt(d))
+        L.append(row)
+    return True
 
 
 class Diverged(ArithmeticError):
@@ -308,6 +340,9 @@ class KalmanCore:
         self._last_kind: str | None = None
         self.guard_count = 0
         self.updates = 0
+        #: whether each step silences numpy's floating-point warnings itself; a caller that
+        #: holds ``np.errstate(all="ignore")`` around its whole step sets this false
+        self.errstate = True
         self._start()
 
     def _start(self) -> None:
@@ -319,6 +354,8 @@ class KalmanCore:
         self.nis: float | None = None
         self._log_likelihood: float | None = None
         self._nis_run = 0
+        #: true from a (re)start until the first step is accepted
+        self.fresh = True
 
     @property
     def mode(self) -> str:
@@ -352,7 +389,7 @@ class KalmanCore:
         Then :math:`P \leftarrow F P F^\top + Q` (not in a constant-gain mode). ``Q``
         overrides the noise covariance for this step.
         """
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore") if self.errstate else _QUIET:
             try:
                 x, P = self.x, self.P
                 if f is None:
@@ -389,7 +426,7 @@ class KalmanCore:
         """
         z = np.atleast_1d(np.asarray(z, dtype=float))
         Rk = self.R if R is None else _cov(R, self.dim_z, "R")
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore") if self.errstate else _QUIET:
             try:
                 x, P = self.x, self.P
                 if h is None:
@@ -448,11 +485,29 @@ class KalmanCore:
         if self.constraint is not None:
             x = np.asarray(self.constraint(x), dtype=float)
         self.x, self.P = x, P
+        self.fresh = False
 
     def _guard(self, P: np.ndarray) -> np.ndarray:
         r"""Symmetrise :math:`P` and lift eigenvalues below the floor
-        :math:`\max(\text{eig\_floor}, \text{EIG\_FLOOR\_REL}\,\lambda_\max)`."""
+        :math:`\max(\text{eig\_floor}, \text{EIG\_FLOOR\_REL}\,\lambda_\max)`.
+
+        Cheap in the common case: when a Cholesky factor of :math:`P - 2 f' I` exists, with
+        :math:`f' = \max(\text{eig\_floor}, \text{EIG\_FLOOR\_REL}\,\mathrm{tr} P)` (the
+        trace bounds :math:`\lambda_\max`, so :math:`f'` bounds the floor), every eigenvalue is
+        above the floor by more than the rounding of either test and :math:`P` is kept as it is;
+        only otherwise are the eigenvalues computed (:func:`numpy.linalg.eigvalsh`), so the
+        result is the same as always computing them."""
         P = 0.5 * (P + P.T)
+        if self.dim_x <= _SMALL:
+            if _pd_above(P.tolist(), self.eig_floor):
+                return P
+        else:
+            shift = 2.0 * max(self.eig_floor, EIG_FLOOR_REL * float(np.trace(P)))
+            try:
+                np.linalg.cholesky(P - shift * self._I)
+                return P
+            except np.linalg.LinAlgError:
+                pass
         w = np.linalg.eigvalsh(P)
         floor = max(self.eig_floor, EIG_FLOOR_REL * w[-1])
         if w[0] < floor:
@@ -559,6 +614,8 @@ class Model:
             return self.step(t, x, u, dt)[0], numerical_jacobian(lambda v: self.step(t, v, u, dt)[0], x)
         n = 1 if not self.max_step else max(1, math.ceil(dt / self.max_step - 1e-9))
         hs = dt / n
+        if self.method == "euler":
+            return self._euler(t, x, u, n, hs, jacobian)
         nodes, weights = _SCHEMES[self.method]
         eye = np.eye(x.size)
         Phi = eye if jacobian else None
@@ -579,6 +636,21 @@ class Model:
                 Phi = (eye + hs * dincr) @ Phi
         return x, Phi
 
+    def _euler(self, t: float, x: np.ndarray, u: np.ndarray, n: int, hs: float, jacobian: bool
+               ) -> tuple[np.ndarray, np.ndarray | None]:
+        """``n`` Euler steps of ``hs``: the one-stage case of :meth:`step`'s scheme, the same
+        numbers without the stage bookkeeping (:math:`\Phi = \prod_i (I + h A_i)`)."""
+        f, F, p = self.f, self.F, self.params
+        Phi = None
+        for i in range(n):
+            ti = t + i * hs
+            k = np.asarray(f(ti, x, u, p), dtype=float)
+            if jacobian:
+                J = np.eye(x.size) + hs * np.atleast_2d(F(ti, x, u, p))
+                Phi = J if Phi is None else J @ Phi
+            x = x + hs * k
+        return x, Phi
+
     def output(self, t: float, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Predicted outputs ``h(t, x, u, params)``."""
         return np.atleast_1d(np.asarray(self.h(t, x, u, self.params), dtype=float))
@@ -589,10 +661,28 @@ class Model:
             return np.atleast_2d(np.asarray(self.H(t, x, u, self.params), dtype=float))
         return numerical_jacobian(lambda v: self.output(t, v, u), x)
 
-    def transition(self, t: float, dt: float) -> tuple[Callable, Callable]:
-        """``(f, F)`` for :meth:`KalmanCore.predict` over ``[t, t + dt]``: ``f(x, u)`` and ``F(x, u)``."""
-        return (lambda x, u: self.step(t, x, u, dt)[0],
-                lambda x, u: self.step(t, x, u, dt, jacobian=True)[1])
+    def transition(self, t: float, dt: float, jacobian: bool = False) -> tuple[Callable, Callable]:
+        """``(f, F)`` for :meth:`KalmanCore.predict` over ``[t, t + dt]``: ``f(x, u)`` and ``F(x, u)``.
+
+        With ``jacobian`` (the caller will ask for ``F`` at the same point, as the full
+        filter does) and an analytic ``F``, ``f`` integrates the state and its Jacobian in
+        one pass and ``F`` returns that Jacobian when called with the same arrays."""
+        if not (jacobian and self.F is not None):
+            return (lambda x, u: self.step(t, x, u, dt)[0],
+                    lambda x, u: self.step(t, x, u, dt, jacobian=True)[1])
+        memo: list[Any] = [None, None, None]
+
+        def f(x, u):
+            x_new, Phi = self.step(t, x, u, dt, jacobian=True)
+            memo[:] = [x, u, Phi]
+            return x_new
+
+        def F(x, u):
+            if memo[0] is x and memo[1] is u:
+                return memo[2]
+            return self.step(t, x, u, dt, jacobian=True)[1]
+
+        return f, F
 
     def measurement(self, t: float, u: np.ndarray, rows: Sequence[int] | None = None
                     ) -> tuple[Callable, Callable]:

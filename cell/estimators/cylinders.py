@@ -82,6 +82,7 @@ import numpy as np
 
 from cell.runtime.blocks import Block, Param
 from cell.plant.cylinders import N_CYL, STOICH_AFR
+from cell.estimators.contract import Estimate, ObserverContract
 from cell.estimators.periodic import (
     LinearPeriodic,
     PeriodicObserver,
@@ -143,6 +144,8 @@ def check_design(design: Any, name: str = "afr_inversion"
 #: speed bands whose observer designs are kept (oldest dropped first): a drive sweeps
 #: hundreds of 1 % bands, and memory must not grow with it
 MAX_DESIGNS = 8
+#: Plausible crank speeds of the rod observer's samples, rpm
+ROD_SAMPLE_RANGE = (0.0, 12000.0)
 
 
 def _firing_deg(order: tuple[int, ...] = FIRING_ORDER) -> np.ndarray:
@@ -495,8 +498,10 @@ class UegoInversion(_StreamObserver):
                            {k: self.design.get(k) for k in ("observer", "source", "identified")})}
 
 
-class RodInversion(_StreamObserver):
-    """Transmission-rod inversion (module docstring). Stream ``N_CRANK``."""
+class RodInversion(ObserverContract, _StreamObserver):
+    """Transmission-rod inversion (module docstring). Stream ``N_CRANK``, on the observer
+    contract (:mod:`cell.estimators.contract`): crank-speed samples outside
+    :data:`ROD_SAMPLE_RANGE` are refused, ticks without samples turn the outputs stale."""
 
     def __init__(self, name: str = "rod_inversion", *, omega_bar: float = 3.1, xi: float = 0.15,
                  h: int = 2, eps: float = 0.1, beta2: float = 1.0, gap_skip: int = 24,
@@ -519,7 +524,15 @@ class RodInversion(_StreamObserver):
         for key, value in checked.items():
             setattr(self, key, value)
         self._n_last = math.nan
+        self.declare(sample_ranges={"N_CRANK": ROD_SAMPLE_RANGE})
         self._redesign()
+
+    def _restart(self, reason: str) -> None:
+        self._reset()
+        self._n_last = math.nan
+
+    def estimate(self) -> Estimate | None:
+        return None if self.z is None else Estimate(self.z)
 
     def _redesign(self) -> None:
         wb, xi = self.omega_bar, self.xi
@@ -575,14 +588,14 @@ class RodInversion(_StreamObserver):
             v[cyl] = float(np.sum(2.0 * np.abs(x2) ** 2))
         return v
 
-    def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
+    def _observe(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         v = self.balance()
         out = {"N_CYL_EST": self._n_last}
         for i in range(N_CYL):
             out[f"TORQUE_BALANCE_{i + 1}"] = float(v[i] - v.mean())
         return {o: val for o, val in out.items() if math.isfinite(val)}
 
-    def state(self) -> dict[str, Any]:
+    def _state(self) -> dict[str, Any]:
         return {**self._common_state(), "balance_energy": self.balance().tolist()}
 
 

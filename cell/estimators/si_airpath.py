@@ -46,8 +46,9 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from cell.runtime.blocks import Block, Param
+from cell.runtime.blocks import Param
 from cell.core.errors import ConfigError, ParamError
+from cell.estimators.contract import Estimate, ObserverContract
 from cell.estimators.core import numerical_jacobian
 from cell.plant import airpath_parts as ap
 from cell.plant.si_airpath import MODEL_PARAMS, RPM_PER_RAD_S, SIAirPathParams, airpath_rhs
@@ -255,9 +256,16 @@ class NamesParam(Param):
 #: Output channels (``dbc/si_airpath.dbc``, frames AIRPATH_EST_1/2).
 OUTPUTS = ("P_IC_EST", "P_IM_EST", "T_IM_EST", "P_EM_EST", "N_TC_EST", "CAC_EST",
            "DC_ETA_VOL_EST", "AIRPATH_POINT")
+#: Plausible ranges of the inputs (the contract refuses a tick outside them): the actuators'
+#: and sensors' DBC ranges, with absolute pressures below 5 kPa an unplugged sensor.
+RANGES = {"THROTTLE": (-10.0, 100.0), "WASTEGATE": (-10.0, 110.0), "ENGINE_SPEED": (0.0, 8000.0),
+          "P_IC": (5.0, 650.0), "P_IM": (5.0, 650.0), "T_IM": (-40.0, 300.0),
+          "N_TC": (0.0, 260000.0)}
+#: Bounds of the states (Pa, Pa, K, Pa, rad/s, -) beyond which the estimate has diverged.
+STATE_BOUNDS = ((0.0, 1e6), (0.0, 1e6), (200.0, 600.0), (0.0, 2e6), (-1.0, 3e4), (-0.5, 0.5))
 
 
-class AirPathObserver(Block):
+class AirPathObserver(ObserverContract):
     """Seed 003's constant-gain EKF of the SI air path, as a runtime block (family observer).
 
     Inputs: ``THROTTLE`` (deg), ``WASTEGATE`` (%), ``ENGINE_SPEED`` (rpm) and the measured
@@ -294,6 +302,9 @@ class AirPathObserver(Block):
         self.model = params
         ins = ["THROTTLE", "WASTEGATE", "ENGINE_SPEED", *MEASUREMENTS]
         super().__init__(name, ins, list(OUTPUTS), rate)
+        self.state_names = STATES
+        self.declare(ranges=RANGES, state_bounds=STATE_BOUNDS)
+        self._y: np.ndarray | None = None
         self.PARAMS = {
             "augmentation": Param("augmentation", int, "1: estimate ΔC_ηvol (seed 003 §4.2); 0: off",
                                   ge=0, le=1),
@@ -338,6 +349,14 @@ class AirPathObserver(Block):
         self.x = None
         self._t = None
 
+    def _restart(self, reason: str) -> None:
+        self.reset()
+
+    def estimate(self) -> Estimate | None:
+        if self.x is None:
+            return None
+        return Estimate(self.x, None, self._y, None, len(self.feedback))
+
     def _nearest(self, speed: float, p_im: float) -> int:
         """The table point nearest to (speed, p_im), looked up again only when either has moved
         by more than a twentieth of its scheduling scale since the last look-up."""
@@ -371,11 +390,8 @@ class AirPathObserver(Block):
                 x[row] = z[name] * scale + offset
         return x
 
-    def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
+    def _observe(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         u = [inputs["THROTTLE"], inputs["WASTEGATE"] / 100.0, inputs["ENGINE_SPEED"], 1.0]
-        for v in (*u, *(inputs[m] for m in self.feedback)):
-            if not math.isfinite(v):
-                raise ArithmeticError("an input of the air-path observer is not finite")
         p = self.model
         if self.x is None or self._t is None or not t > self._t:
             if self.x is None:
@@ -390,6 +406,7 @@ class AirPathObserver(Block):
                               self.feedback)
         y = np.array([inputs[m] * scale + offset - self.x[row]
                       for m, (row, scale, offset) in zip(self.feedback, self._rows)])
+        self._y = y
         x = self.x + K[i] @ y
         x[0] = max(x[0], 20_000.0)
         x[1] = max(x[1], 5_000.0)
@@ -410,7 +427,7 @@ class AirPathObserver(Block):
                 "P_EM_EST": x[3] / 1000.0, "N_TC_EST": x[4] * RPM_PER_RAD_S, "CAC_EST": cac * 1e6,
                 "DC_ETA_VOL_EST": dc, "AIRPATH_POINT": float(i)}
 
-    def state(self) -> dict[str, Any]:
+    def _state(self) -> dict[str, Any]:
         pt = getattr(self, "point", None)
         return {"t": self._t, "states": list(STATES[: 6 if self.augmentation else 5]),
                 "x": None if self.x is None else self.x.tolist(), "point": pt,

@@ -87,7 +87,7 @@ def test_at_a_table_point_with_its_own_measurements_the_observer_stays_put(table
     obs = AirPathObserver(table=table)
     for k in range(200):
         out = obs.step(k * 0.01, _inputs(pt))
-    assert set(out) == set(OUTPUTS)
+    assert set(out) == set(OUTPUTS) | {"AIRPATH_CONF"}  # the contract adds the confidence
     assert out["P_IM_EST"] == pytest.approx(pt.x[1] / 1000, abs=0.01)
     assert out["N_TC_EST"] == pytest.approx(pt.x[4] * 30 / np.pi, rel=1e-3)
     assert out["DC_ETA_VOL_EST"] == pytest.approx(0.0, abs=1e-4)

@@ -36,7 +36,8 @@ with a known offset on one cylinder identifies both:
    the model explains. A fit that explains less than :data:`MIN_EXPLAINED` of the held-out
    part is refused.
 
-The design file (JSON) names its observer (``afr_inversion``), the logs, the known offset,
+The design file (JSON, the observer contract's design format) names its observer
+(``afr_inversion``) and carries the lags as its ``params``, the logs, the known offset,
 where the step was found, what it identified (``identified.points``: rpm, ``phase_deg`` per
 band; ``identified.tau1``, ``tau2``) and the held-out fit. Nothing is written unless the
 whole design succeeds; a refusal exits 2 naming why.
@@ -59,6 +60,7 @@ from scipy.optimize import least_squares
 from cell.core.errors import ConfigError
 from cell.core.files import write_text_atomic
 from cell.core.registry import Experiment
+from cell.estimators.contract import DESIGN_FORMAT
 from cell.estimators.cylinders import FIRING_ORDER, check_design
 from cell.plant.cylinders import N_CYL
 
@@ -376,8 +378,10 @@ def design_logs(logs: Sequence[str | Path | Sequence[can.Message]], known: tuple
                           f"{MIN_EXPLAINED:.0%}): is the offset on cylinder {cyl}, and the speed "
                           "steady in each band?")
     out = {
+        "format": DESIGN_FORMAT,
         "observer": "afr_inversion",
         "design": "imbalance",
+        "params": {"tau1": round(tau1, 6), "tau2": round(tau2, 6)},
         "source": names,
         "known_offset": {"cylinder": cyl, "offset": offset},
         "steps": steps,

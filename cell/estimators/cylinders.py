@@ -82,7 +82,7 @@ import numpy as np
 
 from cell.runtime.blocks import Block, Param
 from cell.plant.cylinders import N_CYL, STOICH_AFR
-from cell.estimators.contract import Estimate, ObserverContract
+from cell.estimators.contract import DesignError, Estimate, ObserverContract
 from cell.estimators.periodic import (
     LinearPeriodic,
     PeriodicObserver,
@@ -144,6 +144,9 @@ def check_design(design: Any, name: str = "afr_inversion"
 #: speed bands whose observer designs are kept (oldest dropped first): a drive sweeps
 #: hundreds of 1 % bands, and memory must not grow with it
 MAX_DESIGNS = 8
+#: Plausible UEGO samples (the frame's range, AFR) and engine speeds (rpm) of afr_inversion
+AFR_SAMPLE_RANGE = (5.0, 40.0)
+SPEED_RANGE = (0.0, 12000.0)
 #: Plausible crank speeds of the rod observer's samples, rpm
 ROD_SAMPLE_RANGE = (0.0, 12000.0)
 
@@ -207,8 +210,12 @@ class _StreamObserver(Block):
                 "skips": self.skips, "resets": self.resets, "events": list(self.events)}
 
 
-class UegoInversion(_StreamObserver):
-    """AFR inversion of the UEGO sensor (module docstring). Stream ``AFR_UEGO``."""
+class UegoInversion(ObserverContract, _StreamObserver):
+    """AFR inversion of the UEGO sensor (module docstring). Stream ``AFR_UEGO``, on the
+    observer contract (:mod:`cell.estimators.contract`): UEGO samples outside
+    :data:`AFR_SAMPLE_RANGE` and engine speeds outside :data:`SPEED_RANGE` are refused,
+    ticks without samples turn the outputs stale; a design (``testcell design imbalance``)
+    is loaded with :meth:`load_design`."""
 
     def __init__(self, name: str = "afr_inversion", *, tau1: float = 0.025, tau2: float = 0.020,
                  h: int = 3, ltilde: float = 4.0, alpha: float = 4.0, threshold: float = 0.5,
@@ -263,9 +270,11 @@ class UegoInversion(_StreamObserver):
         self._w_last = math.nan
         #: the loaded design's phase per speed (rpm, deg), or None: the model's evo + delay
         self._phase_table: tuple[np.ndarray, np.ndarray] | None = None
-        self.design: dict[str, Any] | None = None
+        self.loaded_design: dict[str, Any] | None = None
         self._reset_windows()
         self._announce_reset = False
+        self._reset_reason = "observer reset after lost frames"
+        self.declare(ranges={"ENGINE_SPEED": SPEED_RANGE}, sample_ranges={"AFR_UEGO": AFR_SAMPLE_RANGE})
         if design is not None:
             self.load_design(design)
 
@@ -411,15 +420,36 @@ class UegoInversion(_StreamObserver):
             return float(np.interp(rpm, speeds, phases))
         return self.evo_deg + 6.0 * rpm * self.delay
 
-    def load_design(self, design: dict[str, Any]) -> None:
-        """Use a design of ``testcell design imbalance`` (its dict): the phase per speed and
-        the UEGO lags. A design of another observer, or one without what this observer
-        uses, is refused (:class:`ValueError` naming what), and nothing changes."""
-        phases, lags = check_design(design, self.name)
-        self._phase_table = phases
-        self.tau1, self.tau2 = lags
-        self.design = design
+    def _check_design(self, design: Any) -> Any:
+        """The phase table and lags of an imbalance design (``identified``), or ``None`` for
+        a design of the parameters alone (the windows then follow ``evo_deg`` and ``delay``)."""
+        if "identified" not in design:
+            return None
+        try:
+            return check_design(design, self.name), design["identified"]
+        except ValueError as exc:
+            raise DesignError(str(exc)) from None
+
+    def _use_design(self, checked: Any) -> None:
+        if checked is None:
+            self._phase_table, self.loaded_design = None, None
+        else:
+            (phases, lags), ident = checked
+            self._phase_table = phases
+            self.tau1, self.tau2 = lags
+            self.loaded_design = {"identified": ident}
         self._redesign()
+
+    def _design_payload(self) -> dict[str, Any]:
+        return {} if self.loaded_design is None else {"identified": self.loaded_design["identified"]}
+
+    def _restart(self, reason: str) -> None:
+        self._reset_reason = reason
+        self._reset()
+        self._w_last = math.nan
+
+    def estimate(self) -> Estimate | None:
+        return None if self.z is None else Estimate(self.z)
 
     # -- samples and ticks --------------------------------------------------------------
     def _samples(self, stream: str, index: int, values: np.ndarray, t: float) -> None:
@@ -463,7 +493,7 @@ class UegoInversion(_StreamObserver):
         c = self._obs.coefficients(self.z[-self._obs.d:])[:, 0]
         return math.sqrt(2.0) * np.abs(c[1:])
 
-    def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
+    def _observe(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         rpm = inputs["ENGINE_SPEED"]
         self.rpm = rpm if math.isfinite(rpm) and rpm > 100.0 else None
         e = self.harmonics()
@@ -482,11 +512,12 @@ class UegoInversion(_StreamObserver):
         if self._announce_reset:
             self._announce_reset = False
             out["IMBALANCE_CYL"] = math.nan
-            self.errors["IMBALANCE_CYL"] = (f"observer reset after lost frames: settling for "
+            self.errors["IMBALANCE_CYL"] = (f"{self._reset_reason}: settling for "
                                             f"{self.settle_cycles} engine cycles")
+            self._reset_reason = "observer reset after lost frames"
         return out
 
-    def state(self) -> dict[str, Any]:
+    def _state(self) -> dict[str, Any]:
         return {**self._common_state(), "rpm": self.rpm,
                 "afr_cyl_est": self.cyl_est.tolist(), "afr_cyl_measured": self.cyl_meas.tolist(),
                 "harmonics": self.harmonics().tolist(), "diagnosis": self.diagnosis,
@@ -494,8 +525,7 @@ class UegoInversion(_StreamObserver):
                 "confidence": self.confidence, "cusum": self._cusum.tolist(),
                 "sigma": (math.sqrt(self._var) if self._var is not None else None),
                 "window_start_deg": (self.window_start(self.rpm) if self.rpm else None),
-                "design": (None if self.design is None else
-                           {k: self.design.get(k) for k in ("observer", "source", "identified")})}
+                "design": self.loaded_design}
 
 
 class RodInversion(ObserverContract, _StreamObserver):

@@ -13,6 +13,7 @@ import pytest
 from cell.app.cli import main as cli
 from cell.core.errors import ConfigError
 from cell.design.cylinders import design_logs, parse_known_offset, read_cycles
+from cell.estimators.cylinders import UegoInversion
 from cell.experiments.robustness import (DESIGN_OFFSET, DESIGN_SPEEDS, SHORT, Variant,
                                          record_design_frames)
 from cell.plant.cylinders import CylinderParams
@@ -76,6 +77,15 @@ def test_the_design_identifies_the_phase_per_speed_and_the_lags(designed):
     fit = designed["fit"]
     assert fit["explained_held_out"] >= 0.9
     assert all(f["held_out_cycles"] >= 3 for f in fit["per_speed"])
+
+
+def test_the_observer_loads_the_design_file(designed):
+    u = UegoInversion()
+    u.load_design(designed, "imbalance.json")
+    ident = designed["identified"]
+    assert (u.tau1, u.tau2) == (ident["tau1"], ident["tau2"])
+    for p in ident["points"]:
+        assert u.window_start(p["rpm"]) == pytest.approx(p["phase_deg"])
 
 
 def test_a_log_without_the_offset_is_refused_and_nothing_written(logs, tmp_path, capsys):

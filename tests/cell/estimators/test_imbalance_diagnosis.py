@@ -9,6 +9,7 @@ import copy
 import numpy as np
 import pytest
 
+from cell.estimators.contract import DesignError
 from cell.estimators.cylinders import CONFIRMED, NONE, SETTLING, SUSPECT, UegoInversion
 
 
@@ -116,6 +117,18 @@ def test_a_bad_design_is_refused_by_name_and_nothing_changes(change, needle):
     u = UegoInversion()
     u.load_design(copy.deepcopy(DESIGN))
     bad = {**copy.deepcopy(DESIGN), **change}
-    with pytest.raises(ValueError, match=needle):
+    with pytest.raises(DesignError, match=needle):
         u.load_design(bad)
     assert (u.tau1, u.tau2) == (0.03, 0.015) and u.window_start(1500.0) == pytest.approx(230.0)
+
+
+def test_a_design_round_trips_through_the_contract():
+    u = UegoInversion()
+    u.load_design(copy.deepcopy(DESIGN))
+    again = UegoInversion()
+    again.load_design(u.design())  # what the contract writes for it
+    assert (again.tau1, again.tau2) == (0.03, 0.015)
+    assert again.window_start(2000.0) == pytest.approx(260.0)
+    # a design of the parameters alone puts the windows back on the model's delay
+    again.load_design({"observer": "afr_inversion", "params": {"delay": 0.006}})
+    assert again.window_start(2000.0) == pytest.approx(140.0 + 6 * 2000.0 * 0.006)

@@ -17,10 +17,10 @@ with a known offset on one cylinder identifies both:
    the mean coefficients before and after it (a change-point test against the cycles'
    scatter, :data:`STEP_LEVEL`; none: the offset is on from the start), so a log whose
    offset starts part-way through is fine; the first :data:`SKIP_CYCLES` after it, and at
-   least :data:`SKIP_SECONDS`, are dropped (the sensor's transient); the earliest band's step counts. A log none of whose
-   bands shares a pattern after its step (the mean coefficients' energy below
-   :data:`STEP_LEVEL` times its standard error) is refused: it does not carry the known
-   offset.
+   least :data:`SKIP_SECONDS`, are dropped (the sensor's transient); the earliest band's
+   step counts. A log none of whose bands shares a pattern after its step (the mean
+   coefficients' energy below :data:`STEP_LEVEL` times its standard error) is refused: it
+   does not carry the known offset.
 3. **The model.** With the λ control keeping the mean fuel, cylinder :math:`C` at offset
    :math:`o` runs at :math:`\mathrm{AFR}_C = \bar a \cdot 4/(1+o) / (3 + 1/(1+o))` and the
    others at :math:`\bar a \cdot 4 / (3 + 1/(1+o))` (:math:`\bar a` the cycle's mean AFR),

@@ -410,5 +410,6 @@ def variant_params(plant: Mapping[str, object], base: CylinderParams | None = No
     return replace(p, **kw) if kw else p
 
 
-__all__ = ["CylinderParams", "Cylinders", "VARIANT_OPTIONS", "parse_lags", "variant_params", "STOICH_AFR", "cylinder_lambdas", "parse_imbalance",
+__all__ = ["CylinderParams", "Cylinders", "VARIANT_OPTIONS", "parse_lags", "variant_params",
+           "STOICH_AFR", "cylinder_lambdas", "parse_imbalance",
            "relative_work", "rod_matrices", "torque_pulse"]

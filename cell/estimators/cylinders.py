@@ -371,7 +371,9 @@ class UegoInversion(ObserverContract, _StreamObserver):
         self._d_hist.append(d.copy())
         moving = float(np.max(np.abs(d - self._d_hist[0])))
         a = np.abs(d)
-        others = np.array([np.delete(a, i).max() for i in range(N_CYL)])
+        top = int(np.argmax(a))
+        others = np.full(N_CYL, a[top])
+        others[top] = np.max(np.delete(a, top))  # the largest of the others
         g = np.minimum(a, a - others)
         step = np.minimum((g - self.threshold) / math.hypot(sigma, moving) - CUSUM_K,
                           self.confirm / self.persist)

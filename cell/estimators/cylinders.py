@@ -29,7 +29,8 @@ gains are redesigned when the engine speed moves by more than 1 %. Outputs:
   per cylinder, in units of the departures' own uncertainty: their standard deviation
   :math:`\sigma` (tracked from the phase-to-phase changes of :math:`d`, winsorised at
   :math:`3\sigma`, floored at ``sigma_floor``) combined with how far :math:`d` moved over the
-  last engine cycle :math:`\Delta` (a departure still settling is not yet evidence),
+  last engine cycle or :data:`MOVING_S`, whichever is longer, :math:`\Delta` (a departure
+  still settling is not yet evidence),
   :math:`S_i \leftarrow \min(S_{max}, \max(0, S_i + \min((g_i - \delta)/\sqrt{\sigma^2 +
   \Delta^2} - k,\ \text{confirm}/\text{persist})))` with :math:`\delta` = ``threshold``
   (0.5 AFR, about 3.4 %) and :math:`k` = 0.5, names cylinder :math:`i` when :math:`S_i`
@@ -109,6 +110,10 @@ CUSUM_K = 0.5
 CUSUM_CAP = 2.0
 #: weight of one exhaust phase in the departures' variance
 VAR_WEIGHT = 0.1
+#: how long the departures must have held still (and at least an engine cycle) before
+#: they count fully as evidence, s: the estimate settles in time (the sensor, the λ
+#: control), not in engine cycles
+MOVING_S = 0.1
 
 
 def check_design(design: Any, name: str = "afr_inversion"
@@ -268,6 +273,7 @@ class UegoInversion(ObserverContract, _StreamObserver):
         self._first: PeriodicObserver | None = None
         self._bucket: int | None = None
         self._w_last = math.nan
+        self._t_samples = 0.0
         #: the loaded design's phase per speed (rpm, deg), or None: the model's evo + delay
         self._phase_table: tuple[np.ndarray, np.ndarray] | None = None
         self.loaded_design: dict[str, Any] | None = None
@@ -324,7 +330,7 @@ class UegoInversion(ObserverContract, _StreamObserver):
         self._cusum = np.zeros(N_CYL)
         self._cusum_any = 0.0
         self._d_prev: np.ndarray | None = None
-        self._d_hist: collections.deque[np.ndarray] = collections.deque(maxlen=N_CYL + 1)
+        self._d_hist: collections.deque[tuple[float, np.ndarray]] = collections.deque()
         self._var: float | None = None
         self.diag_state = SETTLING
         self.confidence = 0.0
@@ -368,8 +374,11 @@ class UegoInversion(ObserverContract, _StreamObserver):
         sigma = self._track_variance(d, robust=True)
         # a departure still moving is not yet evidence: its change over the last engine cycle
         # (every window measured once since) widens the uncertainty it is judged against
-        self._d_hist.append(d.copy())
-        moving = float(np.max(np.abs(d - self._d_hist[0])))
+        t = self._t_samples
+        self._d_hist.append((t, d.copy()))
+        while len(self._d_hist) > N_CYL + 1 and self._d_hist[0][0] < t - MOVING_S:
+            self._d_hist.popleft()
+        moving = float(max(np.max(np.abs(d - old)) for _, old in self._d_hist))
         a = np.abs(d)
         top = int(np.argmax(a))
         others = np.full(N_CYL, a[top])
@@ -469,6 +478,7 @@ class UegoInversion(ObserverContract, _StreamObserver):
             raise ArithmeticError("the AFR observer diverged; reset")
         vals = values.tolist()
         n = len(vals)
+        self._t_samples = t
         self.samples_seen += n
         self._w_last = last
         owners = self._owner_of[index:index + n]

@@ -20,6 +20,7 @@ def _feed(u: UegoInversion, patterns, rng, noise=0.03):
     u._fresh = {1, 2, 3, 4}
     out = []
     for p in patterns:
+        u._t_samples += 0.02  # a window at 1500 rpm
         u.cyl_est = 14.7 + np.asarray(p, dtype=float) + rng.normal(0.0, noise, 4)
         u._diagnose()
         out.append((u.diagnosis, u.diag_state, u.confidence))

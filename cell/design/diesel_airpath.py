@@ -37,7 +37,9 @@ from cell.core import registry
 from cell.core.errors import ConfigError, LogFormatError
 from cell.core.files import write_text_atomic
 from cell.estimators import augmentation as bias
+from cell.estimators.contract import DESIGN_FORMAT
 from cell.estimators.diesel_airpath import (
+    AUGMENTED_NAME,
     OUTPUTS,
     RUNTIME_SENSORS,
     augmented_observer,
@@ -327,7 +329,7 @@ def design_from_frames(frames, states: Sequence[str] | None = None, approach: in
     max_dim = len(runtime_sensors)
     design = APPROACHES[approach](run, st, n_q, max_dim)
     fit_runtime(design, runtime_sensors, n_q, source)
-    out = design.as_dict(STATES)
+    out = {"format": DESIGN_FORMAT, "observer": AUGMENTED_NAME, **design.as_dict(STATES)}
     out.update({"design_sensors": states, "runtime_sensors": list(runtime_sensors),
                 "source": str(source),
                 "rule": f"n_q = number of singular values >= {bias.DIM_RATIO:g} x the largest, "

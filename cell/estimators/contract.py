@@ -244,7 +244,8 @@ class ObserverContract(Block):
             rec.bad_run += 1
             what, reason = bad if bad is not None else ("samples", quiet)
             if bad is not None:
-                rec.refused[what] += 1
+                if what not in self.streams:  # a stream's frames are counted as they come
+                    rec.refused[what] += 1
                 rec.valid_ticks = 0
             if rec.bad_run >= self.gap_ticks:
                 rec.resume = rec.resume or rec.t_valid is not None
@@ -442,7 +443,9 @@ class ObserverContract(Block):
         except ParamError as exc:
             raise DesignError(f"{source}: params.{exc.field}: {exc.message}") from None
         except DesignError as exc:
-            raise DesignError(f"{source}: {exc}") if not str(exc).startswith(source) else exc
+            if str(exc).startswith(source):
+                raise
+            raise DesignError(f"{source}: {exc}") from None
         self._use_design(own)
         if checked_params:
             self._apply(checked_params)

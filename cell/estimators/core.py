@@ -78,7 +78,7 @@ _SMALL = 8
 
 
 def _pd_above(a: list[list[float]], eig_floor: float) -> bool:
-    """Whether the symmetric matrix ``a`` (nested lists) minus :math:`2 f' I` has a Cholesky
+    r"""Whether the symmetric matrix ``a`` (nested lists) minus :math:`2 f' I` has a Cholesky
     factor, :math:`f' = \max(\text{eig\_floor}, \text{EIG\_FLOOR\_REL}\,\mathrm{tr}\,a)`."""
     n = len(a)
     shift = 2.0 * max(eig_floor, EIG_FLOOR_REL * sum(a[i][i] for i in range(n)))
@@ -638,7 +638,7 @@ class Model:
 
     def _euler(self, t: float, x: np.ndarray, u: np.ndarray, n: int, hs: float, jacobian: bool
                ) -> tuple[np.ndarray, np.ndarray | None]:
-        """``n`` Euler steps of ``hs``: the one-stage case of :meth:`step`'s scheme, the same
+        r"""``n`` Euler steps of ``hs``: the one-stage case of :meth:`step`'s scheme, the same
         numbers without the stage bookkeeping (:math:`\Phi = \prod_i (I + h A_i)`)."""
         f, F, p = self.f, self.F, self.params
         Phi = None

@@ -638,7 +638,8 @@ class RodInversion(ObserverContract, _StreamObserver):
         return {o: val for o, val in out.items() if math.isfinite(val)}
 
     def _state(self) -> dict[str, Any]:
-        return {**self._common_state(), "balance_energy": self.balance().tolist()}
+        return {**self._common_state(),  # no estimate yet (after a reset): None, not NaN
+                "balance_energy": [v if math.isfinite(v) else None for v in self.balance().tolist()]}
 
 
 def imbalance_observers(record: bool = False) -> list[Block]:

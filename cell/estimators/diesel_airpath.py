@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -39,6 +40,7 @@ from cell.plant.diesel_airpath import (
     airpath_rhs,
 )
 from cell.estimators.augmentation import AugmentationError, augment, pbh_check
+from cell.estimators.contract import DesignError
 from cell.estimators.core import Model
 from cell.estimators.observer import ObserverBlock
 
@@ -109,7 +111,8 @@ class _CachedRhs:
         return self._value
 
     def jacobian(self, t, x, u, p) -> np.ndarray:
-        """:func:`airpath_jacobian` with its base point from the cache."""
+        """:func:`airpath_jacobian` (in the guarded domain) with its base point from the cache."""
+        x, u = guard_domain(x, u)
         return airpath_jacobian(t, x, u, p, f0=self.f(t, x, u, p))
 
 
@@ -159,31 +162,86 @@ def _contract(sensors: Sequence[str], biases: Sequence[str]) -> dict:
             "state_bounds": STATE_BOUNDS | {b: BIAS_BOUND for b in biases}, "sd": STATES}
 
 
-def augmented_observer(Aq: np.ndarray, name: str = "airpath-augmented",
-                       sensors: Sequence[str] = RUNTIME_SENSORS, rate: str = "FAS",
-                       channels: dict[str, str] | None = None) -> ObserverBlock:
-    """The augmented observer (seed 002, eq. 3/4) with :math:`\\hat A_q` = ``Aq``.
+#: The augmented observer's block name: the ``observer`` its design files name.
+AUGMENTED_NAME = "airpath-augmented"
 
-    Refused (:class:`~cell.estimators.augmentation.AugmentationError`) when ``Aq`` fails the PBH
-    test (Theorem 2) with the run-time sensors.
+
+def _check_Aq(value: Any, source: str) -> np.ndarray:
+    try:
+        Aq = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{source}: field 'Aq' (a 3 x n_q list of numbers) is missing or not "
+                          "numeric") from None
+    if Aq.ndim != 2 or Aq.shape[0] != 3 or Aq.shape[1] < 1 or not np.isfinite(Aq).all():
+        raise ConfigError(f"{source}: 'Aq' must be 3 x n_q (n_q >= 1) finite numbers, "
+                          f"got shape {Aq.shape}")
+    return Aq
+
+
+class AugmentedObserver(ObserverBlock):
+    r"""Seed 002's augmented observer (eq. 3/4) with :math:`\hat A_q` = ``Aq``, on the contract.
+
+    Its design (``design()``, ``load_design``, files of ``testcell design bias``) holds
+    ``Aq`` besides the tunable parameters. A design loaded live must keep dim q (the bias
+    states are channels); one that fails the PBH test with the run-time sensors is refused.
     """
-    Aq = np.asarray(Aq, dtype=float).reshape(3, -1)
-    pbh_check(runtime_C(sensors), Aq, STATES, sensors)
-    model = augment(default_model(), Aq)
-    nq = Aq.shape[1]
-    if channels is None:
-        channels = {s: f"{SIGNAL[s]}_EST" for s in STATES} | {f"Q_BIAS_{i + 1}": f"Q_BIAS_{i + 1}"
-                                                       for i in range(nq)}
-    return ObserverBlock(name, model, measurements={s: SIGNAL[s] for s in sensors},
+
+    def __init__(self, Aq: np.ndarray, name: str = AUGMENTED_NAME,
+                 sensors: Sequence[str] = RUNTIME_SENSORS, rate: str = "FAS",
+                 channels: dict[str, str] | None = None) -> None:
+        Aq = np.asarray(Aq, dtype=float).reshape(3, -1)
+        pbh_check(runtime_C(sensors), Aq, STATES, sensors)
+        nq = Aq.shape[1]
+        if channels is None:
+            channels = {s: f"{SIGNAL[s]}_EST" for s in STATES} | {
+                f"Q_BIAS_{i + 1}": f"Q_BIAS_{i + 1}" for i in range(nq)}
+        self.Aq = Aq
+        self._sensors = tuple(sensors)
+        super().__init__(name, augment(default_model(), Aq),
+                         measurements={s: SIGNAL[s] for s in sensors},
                          Q=[*Q_STATES, *[Q_BIAS] * nq], R=[R_DIAG[s] for s in sensors],
                          x0=[*X0, *[0.0] * nq], P0=[100.0, 400.0, 100.0, *[100.0] * nq],
                          rate=rate, channels=channels, prefix="AIRPATH_AUG",
                          units={f"Q_BIAS_{i + 1}": "" for i in range(nq)},
                          **_contract(sensors, [f"Q_BIAS_{i + 1}" for i in range(nq)]))
 
+    def _design_payload(self) -> dict[str, Any]:
+        return {"Aq": self.Aq.tolist()}
+
+    def _check_design(self, design: Any) -> Any:
+        if "Aq" not in design:
+            return None
+        Aq = _check_Aq(design["Aq"], "Aq")
+        if Aq.shape != self.Aq.shape:
+            raise DesignError(f"Aq: {Aq.shape[0]} x {Aq.shape[1]} but the running observer has "
+                              f"dim q = {self.Aq.shape[1]} (its bias channels); start the cell with "
+                              "--bias-design FILE for another dim q")
+        try:
+            pbh_check(runtime_C(self._sensors), Aq, STATES, self._sensors)
+        except AugmentationError as exc:
+            raise DesignError(f"Aq: {exc}") from None
+        return Aq
+
+    def _use_design(self, checked: Any) -> None:
+        if checked is not None:
+            self.Aq = checked
+            self.model = augment(default_model(), checked)
+
+
+def augmented_observer(Aq: np.ndarray, name: str = AUGMENTED_NAME,
+                       sensors: Sequence[str] = RUNTIME_SENSORS, rate: str = "FAS",
+                       channels: dict[str, str] | None = None) -> AugmentedObserver:
+    r"""The augmented observer (seed 002, eq. 3/4) with :math:`\hat A_q` = ``Aq``.
+
+    Refused (:class:`~cell.estimators.augmentation.AugmentationError`) when ``Aq`` fails the PBH
+    test (Theorem 2) with the run-time sensors.
+    """
+    return AugmentedObserver(Aq, name, sensors, rate, channels)
+
 
 def load_design(path: str | Path) -> np.ndarray:
-    """:math:`\\hat A_q` from a design file of ``testcell design bias``; refuses a bad file."""
+    r""":math:`\hat A_q` from a design file of ``testcell design bias``; refuses a bad file,
+    or one that names another observer than ``airpath-augmented``."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -192,15 +250,13 @@ def load_design(path: str | Path) -> np.ndarray:
                           "bias LOG --out FILE`)") from None
     except (OSError, ValueError) as exc:
         raise ConfigError(f"bias design {path}: not a readable JSON file: {exc}") from None
-    try:
-        Aq = np.asarray(data["Aq"], dtype=float)
-    except (KeyError, TypeError, ValueError):
+    if not isinstance(data, dict) or "Aq" not in data:
         raise ConfigError(f"bias design {path}: field 'Aq' (a 3 x n_q list of numbers) is "
-                          "missing or not numeric") from None
-    if Aq.ndim != 2 or Aq.shape[0] != 3 or Aq.shape[1] < 1 or not np.isfinite(Aq).all():
-        raise ConfigError(f"bias design {path}: 'Aq' must be 3 x n_q (n_q >= 1) finite numbers, "
-                          f"got shape {Aq.shape}")
-    return Aq
+                          "missing or not numeric")
+    if data.get("observer", AUGMENTED_NAME) != AUGMENTED_NAME:
+        raise DesignError(f"bias design {path}: names observer {data['observer']!r}, not "
+                          f"{AUGMENTED_NAME!r}")
+    return _check_Aq(data["Aq"], f"bias design {path}")
 
 
 def airpath_observers(design: str | Path | None = None) -> list[ObserverBlock]:

@@ -37,7 +37,6 @@ too, and any other set (tuning ``feedback``) or tick period is solved for when a
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,7 +47,7 @@ import scipy.linalg
 
 from cell.runtime.blocks import Param
 from cell.core.errors import ConfigError, ParamError
-from cell.estimators.contract import Estimate, ObserverContract
+from cell.estimators.contract import DESIGN_FORMAT, DesignError, Estimate, ObserverContract
 from cell.estimators.core import numerical_jacobian
 from cell.plant import airpath_parts as ap
 from cell.plant.si_airpath import MODEL_PARAMS, RPM_PER_RAD_S, SIAirPathParams, airpath_rhs
@@ -201,12 +200,34 @@ class GainTable:
                 "source": self.source, "notes": self.notes,
                 "points": [pt.__dict__ for pt in self.points]}
 
+    def design(self, observer: str = "airpath") -> dict[str, Any]:
+        """The table as the observer contract's design file (``observer``, ``table``)."""
+        return {"format": DESIGN_FORMAT, "observer": observer, "table": self.to_json()}
+
     def save(self, path: str | Path) -> Path:
+        """Write the table as a design file of the observer contract (JSON naming ``airpath``)."""
         path = Path(path)
         if path.suffix.lower() != ".json":
             raise ConfigError(f"--out {path}: the gain table is written as JSON (.json)")
-        path.write_text(json.dumps(self.to_json(), indent=1))
+        path.write_text(json.dumps(self.design(), indent=1))
         return path
+
+    @classmethod
+    def from_json(cls, data: Any, source: str = "gain table") -> GainTable:
+        """A table from its JSON form: the table itself, or a design file holding it
+        (``{"observer": "airpath", "table": {...}}``); refuses anything else, naming ``source``."""
+        if isinstance(data, dict) and data.get("format") == DESIGN_FORMAT:
+            if data.get("observer") != "airpath":
+                raise DesignError(f"{source}: names observer {data.get('observer')!r}, not 'airpath'")
+            data = data.get("table")
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise DesignError(f"{source}: not a gain table of format {FORMAT}")
+        try:
+            points = [TablePoint(**p) for p in data["points"]]
+            return cls(float(data["dt"]), points, tuple(data["feedback"]), data.get("source", ""),
+                       data.get("notes", {}))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DesignError(f"{source}: malformed gain table ({exc})") from None
 
     @classmethod
     def load(cls, path: str | Path = DEFAULT_TABLE) -> GainTable:
@@ -217,14 +238,7 @@ class GainTable:
             raise ConfigError(f"gain table not found: {path}") from None
         except json.JSONDecodeError as exc:
             raise ConfigError(f"{path}: not a JSON gain table ({exc})") from None
-        if not isinstance(data, dict) or data.get("format") != FORMAT:
-            raise ConfigError(f"{path}: not a gain table of format {FORMAT}")
-        try:
-            points = [TablePoint(**p) for p in data["points"]]
-            return cls(float(data["dt"]), points, tuple(data["feedback"]), data.get("source", ""),
-                       data.get("notes", {}))
-        except (KeyError, TypeError) as exc:
-            raise ConfigError(f"{path}: malformed gain table ({exc})") from None
+        return cls.from_json(data, str(path))
 
 
 # -- the runtime block ---------------------------------------------------------------------------
@@ -351,6 +365,31 @@ class AirPathObserver(ObserverContract):
 
     def _restart(self, reason: str) -> None:
         self.reset()
+
+    # -- designs: the gain table ---------------------------------------------------------------
+    def _design_payload(self) -> dict[str, Any]:
+        return {"table": self.table.to_json()}
+
+    def _check_design(self, design: Any) -> Any:
+        if "table" not in design:
+            return None
+        table = GainTable.from_json(design["table"], "table")
+        feedback = design.get("params", {}).get("feedback", self.feedback)
+        augmentation = design.get("params", {}).get("augmentation", self.augmentation)
+        old, self.table, cache = self.table, table, self._cache
+        self._cache = {}
+        try:  # the new table must give gains for the feedback set in use
+            self._matrices(table.dt, bool(augmentation), tuple(feedback))
+        except (ParamError, ConfigError) as exc:
+            raise DesignError(f"table: {exc}") from None
+        finally:
+            new_cache, self.table, self._cache = self._cache, old, cache
+        return table, new_cache
+
+    def _use_design(self, checked: Any) -> None:
+        if checked is not None:
+            self.table, self._cache = checked
+            self._near = self._J_at = None
 
     def estimate(self) -> Estimate | None:
         if self.x is None:

@@ -142,3 +142,25 @@ def test_the_models_domain_guard_keeps_powers_real_on_negative_pressures():
     for x in ([150.0, 200.0, 40.0], [-1e10, -1e10, 1e10], [0.0, 0.0, 0.0]):
         f = model.f(0.0, np.array(x), u, model.params)
         assert f.dtype == float and np.isfinite(f).all()
+        J = model.F(0.0, np.array(x), u, model.params)  # the Jacobian's differences too
+        assert J.dtype == float and np.isfinite(J).all()
+
+
+def test_a_diverged_estimate_is_reset_with_the_reason_and_the_observer_goes_on():
+    """An estimate at 1e10 kPa (issue 20: what Q = 1e300 made of it) never reaches the model's
+    powers as a negative pressure nor the bus: the step resets the observer and says why."""
+    from cell.estimators.core import Diverged
+
+    obs = default_observer()
+    u = {"FUEL_RATE": 200.0, "ENGINE_SPEED": 1500.0, "VGT_POS": 50.0, "EGR_POS": 20.0,
+         "EXH_BP_L": 600.0, "EXH_BP_R": 600.0, "DSL_P_IM": 180.0, "N_T": 40000.0}
+    for k in range(3):
+        obs.step(0.01 * k, u)
+    obs.core.x = np.array([1e10, -1e10, 1e10])
+    with pytest.raises(Diverged, match="beyond its bounds"):
+        obs.step(0.03, u)
+    c = obs.state()["contract"]
+    assert c["resets"] == 1 and "beyond its bounds" in c["last_reset_reason"]
+    np.testing.assert_array_equal(obs.core.x, obs.core.x0)  # back at x0
+    out = obs.step(0.04, u)
+    assert 5.0 < out["DSL_P_IM_EST_DEFAULT"] < 1500.0 and obs.state()["contract"]["status"] == "ok"

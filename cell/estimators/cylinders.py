@@ -530,6 +530,9 @@ class UegoInversion(ObserverContract, _StreamObserver):
         return out
 
     def _state(self) -> dict[str, Any]:
+        return _json_safe(self._own_state())
+
+    def _own_state(self) -> dict[str, Any]:
         return {**self._common_state(), "rpm": self.rpm,
                 "afr_cyl_est": self.cyl_est.tolist(), "afr_cyl_measured": self.cyl_meas.tolist(),
                 "harmonics": self.harmonics().tolist(), "diagnosis": self.diagnosis,
@@ -538,6 +541,17 @@ class UegoInversion(ObserverContract, _StreamObserver):
                 "sigma": (math.sqrt(self._var) if self._var is not None else None),
                 "window_start_deg": (self.window_start(self.rpm) if self.rpm else None),
                 "design": self.loaded_design}
+
+
+def _json_safe(v: Any) -> Any:
+    """``v`` with every non-finite number as ``None`` (a state is JSON)."""
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
 
 
 class RodInversion(ObserverContract, _StreamObserver):

@@ -153,8 +153,8 @@ class TickRecorder:
         self.afr_true.append([sig[f"AFR_CYL_{i}_TRUE"] for i in range(1, N_CYL + 1)])
         vals = [ch[n].value if ch[n].status == "ok" else math.nan for n in TICK_CHANNELS]
         vals = [math.nan if v is None else v for v in vals]
-        s = self.uego.state()
-        self.rows.append([t, *vals, *s["afr_cyl_est"], *s["afr_cyl_measured"],
+        u = self.uego
+        self.rows.append([t, *vals, *u.cyl_est.tolist(), *u.cyl_meas.tolist(),
                           *(sig[f"IMEP_CYL_{i}_TRUE"] for i in range(1, N_CYL + 1))])
 
     def columns(self) -> dict[str, np.ndarray]:

@@ -102,6 +102,10 @@ class Estimate:
     """Normalised innovation squared of the last update."""
     dof: int = 0
     """Degrees of freedom of the NIS (measurements per update)."""
+    guarded: bool = False
+    """Whether ``x`` and ``P`` were already found finite and ``P`` positive definite (a
+    :class:`~cell.estimators.core.KalmanCore` checks every step it accepts); the contract then
+    checks only the state bounds and the NIS."""
 
 
 def follows_contract(block: Any) -> bool:
@@ -187,6 +191,7 @@ class ObserverContract(Block):
         self._range_list = [(ch, *self.ranges.get(ch, (-math.inf, math.inf))) for ch in self.inputs]
         self.sample_ranges = {s: (float(lo), float(hi)) for s, (lo, hi) in (sample_ranges or {}).items()}
         self.state_bounds = None if state_bounds is None else np.asarray(state_bounds, dtype=float)
+        self._bounds = None if state_bounds is None else self.state_bounds.tolist()
         self.gap_ticks, self.settle_ticks = int(gap_ticks), int(settle_ticks)
         self.contract_nis_gate, self.contract_nis_window = float(nis_gate), int(nis_window)
         self.conf_channel = confidence_channel(self.name)
@@ -289,18 +294,16 @@ class ObserverContract(Block):
     def _check(self, est: Estimate) -> str | None:
         """Why the estimate has diverged, or ``None``."""
         x = est.x
-        if not np.isfinite(x).all():
+        if not est.guarded and not np.isfinite(x).all():
             return f"non-finite state {x.tolist()}"
-        b = self.state_bounds
-        if b is not None:
-            b = b[: len(x)]  # an observer whose state can shrink (an augmentation switched off)
-            out = (x < b[:, 0]) | (x > b[:, 1])
-            if out.any():
-                i = int(np.argmax(out))
-                return (f"state {self._state_name(i)} = {x[i]:.6g} beyond its bounds "
-                        f"[{b[i, 0]:g}, {b[i, 1]:g}]")
+        if self._bounds is not None:
+            # an observer whose state can shrink (an augmentation switched off): zip stops
+            for i, (v, (lo, hi)) in enumerate(zip(x.tolist(), self._bounds)):
+                if not lo <= v <= hi:
+                    return (f"state {self._state_name(i)} = {v:.6g} beyond its bounds "
+                            f"[{lo:g}, {hi:g}]")
         P = est.P
-        if P is not None:
+        if P is not None and not est.guarded:
             if not np.isfinite(P).all():
                 return "non-finite covariance P"
             dg = np.diagonal(P)

@@ -219,7 +219,8 @@ class ObserverBlock(ObserverContract):
 
     def estimate(self) -> Estimate:
         core = self.core
-        return Estimate(core.x, core.P, core.y if core.updates else None, core.nis, core.dim_z)
+        return Estimate(core.x, core.P, core.y if core.updates else None, core.nis, core.dim_z,
+                        guarded=not core.fresh)  # the core checked the step it accepted
 
     # -- stepping -------------------------------------------------------------------------
     def _observe(self, t: float, inputs: dict[str, float]) -> dict[str, float]:

@@ -115,16 +115,16 @@ def test_unplugged_sensors_and_a_raw_minimum_are_refused_with_a_reason_and_recov
         for status, reason, value in chans:
             if 6.05 <= t < 6.5:
                 assert status == "invalid" and "DSL_P_IM = 0 outside its plausible range" in reason
-            if 8.05 <= t < 8.5:
-                assert status == "invalid" and "EXH_BP_R" in reason and "plausible" in reason
+            if 8.05 <= t < 8.5:  # refused by the contract, or already at the door (DBC range)
+                assert status == "invalid" and "EXH_BP_R" in reason
             if value is not None and status == "ok":
                 assert 5.0 < value < 1500.0  # never a diverged estimate on the bus
             if t > 10.0 or 5.0 < t < 6.0:
                 assert status == "ok" and abs(value - truth) < 0.05 * truth, (t, value, truth)
     for b in blocks:
         c = b.state()["contract"]
-        assert c["refused"]["DSL_P_IM"] >= 20 and c["refused"]["EXH_BP_R"] >= 20
-        assert c["status"] == "ok" and c["gaps"] >= 1  # stale for 0.5 s, then restarted
+        assert c["refused"]["DSL_P_IM"] >= 20  # inside its DBC range: only the contract sees it
+        assert c["status"] == "ok" and c["gaps"] >= 2  # no valid input for 0.5 s twice: restarted
         assert "resumed after a gap" in c["last_reset_reason"]
 
 

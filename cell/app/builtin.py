@@ -9,6 +9,7 @@ from cell.control.backpressure import BACKPRESSURE_CONTROLLERS
 from cell.core import registry
 from cell.core.registry import BlockFamily, BlockSet
 
+from cell.design.cylinders import IMBALANCE_DESIGN
 from cell.design.diesel_airpath import BIAS_DESIGN
 from cell.design.si_airpath import AIRPATH_DESIGN
 from cell.estimators.backpressure import native_filters
@@ -21,6 +22,7 @@ from cell.experiments.backpressure import CLOSED_LOOP
 from cell.experiments.catalyst import TWC
 from cell.experiments.cylinders import IMBALANCE
 from cell.experiments.diesel_airpath import BIAS
+from cell.experiments.robustness import ROBUSTNESS
 from cell.experiments.si_airpath import AIRPATH
 from cell.plant.large_diesel import LARGE_DIESEL
 from cell.plant.si_turbo import SI_TURBO
@@ -58,7 +60,9 @@ registry.experiment(TWC)
 registry.experiment(AIRPATH)
 registry.experiment(IMBALANCE)
 registry.experiment(BIAS)
+registry.experiment(ROBUSTNESS)
 
 # design tools
 registry.design(AIRPATH_DESIGN)
 registry.design(BIAS_DESIGN)
+registry.design(IMBALANCE_DESIGN)

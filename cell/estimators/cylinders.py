@@ -21,13 +21,37 @@ ahead by a background thread (:mod:`cell.estimators.speed_grid`). Outputs:
   (Figures 5, 7): 180 deg from the cylinder's exhaust-valve opening (``evo_deg`` after its
   firing TDC) plus the gas's delay to the sensor (``delay`` s, i.e. ``6 rpm delay`` deg),
   as the observer's model believes them;
-- ``IMBALANCE_CYL``: the cylinder whose exhaust-phase AFR departs most from the mean of
-  the four, when that departure exceeds ``threshold`` (0.5 AFR, about 3.4 %) for
-  ``persist`` successive exhaust phases; 0 when none does. A cylinder already named stays
-  named while its departure is within 80 % of the largest (two cylinders about level).
-  It is not yet known (the channel has no value, or is invalid after a reset) until
-  ``settle_cycles`` engine cycles after a start or a reset, and after lost frames until
-  every cylinder's exhaust phase has been seen whole again.
+- ``IMBALANCE_CYL``: a cylinder named only once a sequential test has confirmed it (0:
+  none). At every closed exhaust phase, with :math:`d_i` the departure of cylinder
+  :math:`i`'s AFR from the mean of the four, its evidence is
+  :math:`g_i = |d_i| - \max_{j \ne i}|d_j|`: large only for a cylinder that departs by
+  itself (one cylinder off by :math:`3x` leaves the other three at :math:`x`, so :math:`g`
+  is :math:`2x` for it and negative for them; two cylinders about level give neither any). A one-sided CUSUM
+  per cylinder, in units of the departures' own uncertainty: their standard deviation
+  :math:`\sigma` (tracked from the phase-to-phase changes of :math:`d`, winsorised at
+  :math:`3\sigma`, floored at ``sigma_floor``) combined with how far :math:`d` moved over the
+  last engine cycle or :data:`MOVING_S`, whichever is longer, :math:`\Delta` (a departure
+  still settling is not yet evidence),
+  :math:`S_i \leftarrow \min(S_{max}, \max(0, S_i + \min((g_i - \delta)/\sqrt{\sigma^2 +
+  \Delta^2} - k,\ \text{confirm}/\text{persist})))` with :math:`\delta` = ``threshold``
+  (0.5 AFR, about 3.4 %) and :math:`k` = 0.5, names cylinder :math:`i` when :math:`S_i`
+  reaches ``confirm`` (so after ``persist`` phases of evidence at least) and it has led
+  for ``persist`` successive phases. A named cylinder stays named until its :math:`S_i`
+  returns to 0, or another cylinder is confirmed. A pattern where no cylinder stands out
+  alone (two opposite cylinders equally off: all four depart equally) is *suspect*, never
+  a name. It is not yet known (the channel has no value, or is invalid after a reset)
+  until ``settle_cycles`` engine cycles after a start or a reset, and after lost frames
+  until every cylinder's exhaust phase has been seen whole again; the CUSUMs restart then.
+- ``IMBALANCE_STATE`` (runtime channel, not on the bus): 0 none, 1 settling (not yet
+  known), 2 suspect (evidence accumulating, or an imbalance with no single cylinder), 3
+  confirmed (``IMBALANCE_CYL`` names the cylinder);
+- ``IMBALANCE_CONF`` (runtime channel): the leading cylinder's evidence as a fraction of
+  the confirmation threshold, :math:`\min(1, S_{max}/\text{confirm})`; 0 while settling.
+
+The exhaust-phase windows start at ``evo_deg + 6 rpm delay`` deg after each firing TDC, or,
+with a design (``testcell design imbalance``, :meth:`UegoInversion.load_design`), at the
+design's identified phase at the present speed (interpolated between its speeds, held at
+the ends), with the design's UEGO lags as ``tau1``/``tau2``.
 
 **Transmission-rod inversion** (:class:`RodInversion`, seed 001 "Transmission rod dynamics
 inversion"). :math:`A = [[0, 1], [-\bar\omega^2, -2\bar\xi\bar\omega]]`, :math:`A_0 = [0,
@@ -61,7 +85,7 @@ import numpy as np
 
 from cell.runtime.blocks import Block, Param
 from cell.plant.cylinders import N_CYL, STOICH_AFR
-from cell.estimators.contract import Estimate, ObserverContract
+from cell.estimators.contract import DesignError, Estimate, ObserverContract
 from cell.estimators.periodic import (
     LinearPeriodic,
     PeriodicObserver,
@@ -79,6 +103,55 @@ CYCLE = int(720 / SAMPLE_DEG)
 STEP = math.radians(SAMPLE_DEG)
 FIRING_ORDER = (1, 3, 4, 2)
 
+#: the diagnosis channels beside IMBALANCE_CYL (runtime channels, not on the bus)
+DIAGNOSIS_CHANNELS = ("IMBALANCE_STATE", "IMBALANCE_CONF")
+#: IMBALANCE_STATE values
+NONE, SETTLING, SUSPECT, CONFIRMED = 0, 1, 2, 3
+#: CUSUM allowance (standard deviations) and cap (times ``confirm``: a cylinder whose
+#: evidence is gone is un-named within a bounded time)
+CUSUM_K = 0.5
+CUSUM_CAP = 2.0
+#: weight of one exhaust phase in the departures' variance
+VAR_WEIGHT = 0.1
+#: how long the departures must have held still (and at least an engine cycle) before
+#: they count fully as evidence, s: the estimate settles in time (the sensor, the λ
+#: control), not in engine cycles
+MOVING_S = 0.1
+
+
+def check_design(design: Any, name: str = "afr_inversion"
+                 ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[float, float]]:
+    """The phase table (speeds, deg) and UEGO lags (s) of an imbalance design; ValueError
+    naming what is wrong."""
+    if not isinstance(design, dict):
+        raise ValueError("an imbalance design is a JSON object")
+    if design.get("observer") != name:
+        raise ValueError(f"the design is for observer {design.get('observer')!r}, not {name!r}")
+    ident = design.get("identified")
+    points = ident.get("points") if isinstance(ident, dict) else None
+    if not isinstance(points, list) or not points:
+        raise ValueError("the design has no identified.points (speed, phase_deg per speed)")
+    try:
+        rows = sorted((float(p["rpm"]), float(p["phase_deg"])) for p in points)
+        lags = (float(ident["tau1"]), float(ident["tau2"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"the design's identified part is incomplete or not numbers: {exc}") from None
+    vals = [v for r in rows for v in r] + list(lags)
+    if not all(math.isfinite(v) for v in vals):
+        raise ValueError("the design's identified values must be finite")
+    if not all(0.0 < t <= 1.0 for t in lags):
+        raise ValueError(f"the design's UEGO lags must be in (0, 1] s, got {lags}")
+    if any(r <= 0.0 for r, _ in rows):
+        raise ValueError("the design's speeds must be positive rpm")
+    speeds = np.array([r for r, _ in rows])
+    if len(np.unique(speeds)) != len(speeds):
+        raise ValueError("the design names a speed twice")
+    return (speeds, np.array([p for _, p in rows])), lags
+
+
+#: Plausible UEGO samples (the frame's range, AFR) and engine speeds (rpm) of afr_inversion
+AFR_SAMPLE_RANGE = (5.0, 40.0)
+SPEED_RANGE = (0.0, 12000.0)
 #: Plausible crank speeds of the rod observer's samples, rpm
 ROD_SAMPLE_RANGE = (0.0, 12000.0)
 
@@ -156,16 +229,22 @@ class _StreamObserver(Block):
                 "skips": self.skips, "resets": self.resets, "events": list(self.events)}
 
 
-class UegoInversion(_StreamObserver):
-    """AFR inversion of the UEGO sensor (module docstring). Stream ``AFR_UEGO``."""
+class UegoInversion(ObserverContract, _StreamObserver):
+    """AFR inversion of the UEGO sensor (module docstring). Stream ``AFR_UEGO``, on the
+    observer contract (:mod:`cell.estimators.contract`): UEGO samples outside
+    :data:`AFR_SAMPLE_RANGE` and engine speeds outside :data:`SPEED_RANGE` are refused,
+    ticks without samples turn the outputs stale; a design (``testcell design imbalance``)
+    is loaded with :meth:`load_design`."""
 
     def __init__(self, name: str = "afr_inversion", *, tau1: float = 0.025, tau2: float = 0.020,
                  h: int = 3, ltilde: float = 4.0, alpha: float = 4.0, threshold: float = 0.5,
                  persist: int = 4, settle_cycles: int = 10, evo_deg: float = 140.0,
-                 delay: float = 0.007,
-                 gap_skip: int = 24, record: bool = False) -> None:
+                 delay: float = 0.007, confirm: float = 20.0, sigma_floor: float = 0.05,
+                 gap_skip: int = 24, record: bool = False,
+                 design: dict[str, Any] | None = None) -> None:
         outs = (["AFR_MANIFOLD_EST"] + [f"AFR_HARM_{k}" for k in (1, 2, 3)]
-                + [f"AFR_CYL_{i}_EST" for i in range(1, N_CYL + 1)] + ["IMBALANCE_CYL"])
+                + [f"AFR_CYL_{i}_EST" for i in range(1, N_CYL + 1)] + ["IMBALANCE_CYL",
+                                                                        *DIAGNOSIS_CHANNELS])
         super().__init__(name, "AFR_UEGO", ["ENGINE_SPEED"], outs,
                          {o: "AFR" for o in outs if o.startswith("AFR")}, record)
         self.PARAMS = {
@@ -179,8 +258,12 @@ class UegoInversion(_StreamObserver):
             "threshold": Param("threshold", float,
                                "AFR departure of one cylinder's exhaust phase from the mean that "
                                "names it in IMBALANCE_CYL", gt=0.0, le=10.0),
-            "persist": Param("persist", int, "successive exhaust phases a cylinder must stand out",
-                             ge=1, le=100),
+            "persist": Param("persist", int, "successive exhaust phases a cylinder must lead "
+                             "before it is confirmed", ge=1, le=100),
+            "confirm": Param("confirm", float, "CUSUM level (in standard deviations of the "
+                             "departures) that confirms a cylinder", gt=0.0, le=1000.0),
+            "sigma_floor": Param("sigma_floor", float, "floor of the departures' standard "
+                                 "deviation, AFR", gt=0.0, le=5.0),
             "settle_cycles": Param("settle_cycles", int, "engine cycles before the first diagnosis "
                                    "after a start or reset", ge=1, le=1000),
             "evo_deg": Param("evo_deg", float, "exhaust-valve opening after firing TDC, deg",
@@ -193,7 +276,7 @@ class UegoInversion(_StreamObserver):
         checked = self.validate({"tau1": tau1, "tau2": tau2, "h": h, "ltilde": ltilde, "alpha": alpha,
                                  "threshold": threshold, "persist": persist,
                                  "settle_cycles": settle_cycles, "evo_deg": evo_deg,
-                                 "delay": delay,
+                                 "delay": delay, "confirm": confirm, "sigma_floor": sigma_floor,
                                  "gap_skip": gap_skip})
         for key, value in checked.items():
             setattr(self, key, value)
@@ -204,9 +287,17 @@ class UegoInversion(_StreamObserver):
         self._first: PeriodicObserver | None = None
         self._bucket: int | None = None
         self._w_last = math.nan
+        self._t_samples = 0.0
+        #: the loaded design's phase per speed (rpm, deg), or None: the model's evo + delay
+        self._phase_table: tuple[np.ndarray, np.ndarray] | None = None
+        self.loaded_design: dict[str, Any] | None = None
         self._reset_windows()
         self._announce_reset = False
+        self._reset_reason = "observer reset after lost frames"
+        self.declare(ranges={"ENGINE_SPEED": SPEED_RANGE}, sample_ranges={"AFR_UEGO": AFR_SAMPLE_RANGE})
         self._redesign()
+        if design is not None:
+            self.load_design(design)
 
     # -- design -------------------------------------------------------------------------
     def _redesign(self) -> None:
@@ -239,6 +330,13 @@ class UegoInversion(_StreamObserver):
         self._fresh: set[int] = set()
         self._candidate = (0, 0)
         self.diagnosis = math.nan
+        self._cusum = np.zeros(N_CYL)
+        self._cusum_any = 0.0
+        self._d_prev: np.ndarray | None = None
+        self._d_hist: collections.deque[tuple[float, np.ndarray]] = collections.deque()
+        self._var: float | None = None
+        self.diag_state = SETTLING
+        self.confidence = 0.0
 
     def _reset(self) -> None:
         super()._reset()
@@ -252,7 +350,7 @@ class UegoInversion(_StreamObserver):
     def _owners(self) -> list[int]:
         """The cylinder (1..4) whose exhaust phase each angle index of the cycle belongs to,
         at the present speed band."""
-        start = self.evo_deg + 6.0 * 1.01**self._bucket * self.delay
+        start = self.window_start(1.01**self._bucket)
         pos = (((np.arange(2 * CYCLE) * SAMPLE_DEG - start) % 720.0) // (720.0 / N_CYL)).astype(int)
         return np.asarray(FIRING_ORDER)[pos].tolist()  # two cycles: a frame may wrap
 
@@ -272,17 +370,100 @@ class UegoInversion(_StreamObserver):
     def _diagnose(self) -> None:
         if (self.cycles_since_reset < self.settle_cycles or not np.isfinite(self.cyl_est).all()
                 or len(self._fresh) < N_CYL):
+            if np.isfinite(self.cyl_est).all():
+                self._track_variance(self.cyl_est - self.cyl_est.mean(), robust=False)
             return
-        dev = np.abs(self.cyl_est - self.cyl_est.mean())
-        i = int(np.argmax(dev))
-        cand = i + 1 if dev[i] > self.threshold else 0
+        d = self.cyl_est - self.cyl_est.mean()
+        sigma = self._track_variance(d, robust=True)
+        # a departure still moving is not yet evidence: its change over the last engine cycle
+        # (every window measured once since) widens the uncertainty it is judged against
+        t = self._t_samples
+        self._d_hist.append((t, d.copy()))
+        while len(self._d_hist) > N_CYL + 1 and self._d_hist[0][0] < t - MOVING_S:
+            self._d_hist.popleft()
+        moving = float(max(np.max(np.abs(d - old)) for _, old in self._d_hist))
+        a = np.abs(d)
+        top = int(np.argmax(a))
+        others = np.full(N_CYL, a[top])
+        others[top] = np.max(np.delete(a, top))  # the largest of the others
+        g = np.minimum(a, a - others)
+        step = np.minimum((g - self.threshold) / math.hypot(sigma, moving) - CUSUM_K,
+                          self.confirm / self.persist)
+        self._cusum = np.clip(self._cusum + step, 0.0, CUSUM_CAP * self.confirm)
+        self._cusum_any = min(max(0.0, self._cusum_any + (a.max() - self.threshold) / sigma
+                                  - CUSUM_K), CUSUM_CAP * self.confirm)
+        lead = int(np.argmax(self._cusum))
+        lead_cyl = lead + 1 if self._cusum[lead] > 0.0 else 0
         prev, count = self._candidate
-        if cand and prev and dev[prev - 1] > self.threshold and dev[prev - 1] >= 0.8 * dev[i]:
-            cand = prev  # two cylinders about level: keep the one named (hysteresis)
-        count = count + 1 if cand == prev else 1
-        self._candidate = (cand, count)
-        if count >= self.persist:
-            self.diagnosis = float(cand)
+        count = count + 1 if lead_cyl == prev else 1
+        self._candidate = (lead_cyl, count)
+        named = int(self.diagnosis) if np.isfinite(self.diagnosis) else 0
+        if lead_cyl and self._cusum[lead] >= self.confirm and count >= self.persist:
+            named = lead_cyl  # confirmed (or another cylinder confirmed over the one named)
+        elif named and self._cusum[named - 1] <= 0.0:
+            named = 0  # the named cylinder's evidence is gone
+        self.diagnosis = float(named)
+        self.confidence = float(min(1.0, self._cusum.max() / self.confirm))
+        if named:
+            self.diag_state = CONFIRMED
+        elif self._cusum.max() > 0.0 or self._cusum_any > 0.0:
+            self.diag_state = SUSPECT
+        else:
+            self.diag_state = NONE
+
+    def _track_variance(self, d: np.ndarray, robust: bool) -> float:
+        """The departures' standard deviation from their phase-to-phase changes (half the mean
+        square change per cylinder, exponentially weighted; winsorised at 3 sigma once settled)."""
+        if self._d_prev is not None:
+            sq = float(np.mean((d - self._d_prev) ** 2)) / 2.0
+            if self._var is None:
+                self._var = sq
+            else:
+                if robust:
+                    sq = min(sq, 9.0 * self._var)
+                self._var += VAR_WEIGHT * (sq - self._var)
+        self._d_prev = d.copy()
+        return max(math.sqrt(self._var) if self._var is not None else math.inf, self.sigma_floor)
+
+    # -- phase and design ---------------------------------------------------------------
+    def window_start(self, rpm: float) -> float:
+        """Crank angle after each cylinder's firing TDC where its gas begins at the sensor,
+        deg: the design's phase at ``rpm`` when one is loaded, else ``evo_deg + 6 rpm delay``."""
+        if self._phase_table is not None:
+            speeds, phases = self._phase_table
+            return float(np.interp(rpm, speeds, phases))
+        return self.evo_deg + 6.0 * rpm * self.delay
+
+    def _check_design(self, design: Any) -> Any:
+        """The phase table and lags of an imbalance design (``identified``), or ``None`` for
+        a design of the parameters alone (the windows then follow ``evo_deg`` and ``delay``)."""
+        if "identified" not in design:
+            return None
+        try:
+            return check_design(design, self.name), design["identified"]
+        except ValueError as exc:
+            raise DesignError(str(exc)) from None
+
+    def _use_design(self, checked: Any) -> None:
+        if checked is None:
+            self._phase_table, self.loaded_design = None, None
+        else:
+            (phases, lags), ident = checked
+            self._phase_table = phases
+            self.tau1, self.tau2 = lags
+            self.loaded_design = {"identified": ident}
+        self._redesign()
+
+    def _design_payload(self) -> dict[str, Any]:
+        return {} if self.loaded_design is None else {"identified": self.loaded_design["identified"]}
+
+    def _restart(self, reason: str) -> None:
+        self._reset_reason = reason
+        self._reset()
+        self._w_last = math.nan
+
+    def estimate(self) -> Estimate | None:
+        return None if self.z is None else Estimate(self.z)
 
     # -- samples and ticks --------------------------------------------------------------
     def _samples(self, stream: str, index: int, values: np.ndarray, t: float) -> None:
@@ -300,6 +481,7 @@ class UegoInversion(_StreamObserver):
             raise ArithmeticError("the AFR observer diverged; reset")
         vals = values.tolist()
         n = len(vals)
+        self._t_samples = t
         self.samples_seen += n
         self._w_last = last
         owners = self._owner_of[index:index + n]
@@ -326,7 +508,7 @@ class UegoInversion(_StreamObserver):
         c = self._obs.coefficients(self.z[-self._obs.d:])[:, 0]
         return math.sqrt(2.0) * np.abs(c[1:])
 
-    def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
+    def _observe(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         rpm = inputs["ENGINE_SPEED"]
         self.rpm = rpm if math.isfinite(rpm) and rpm > 100.0 else None
         e = self.harmonics()
@@ -338,19 +520,41 @@ class UegoInversion(_StreamObserver):
         out["IMBALANCE_CYL"] = self.diagnosis
         # what is not known yet keeps its channel's state (no value yet, or the reset's mark)
         out = {o: v for o, v in out.items() if math.isfinite(v)}
+        known = math.isfinite(self.diagnosis)
+        out["IMBALANCE_STATE"] = float(self.diag_state if known else SETTLING)
+        out["IMBALANCE_CONF"] = self.confidence if known else 0.0
         self.errors = {}
         if self._announce_reset:
             self._announce_reset = False
             out["IMBALANCE_CYL"] = math.nan
-            self.errors["IMBALANCE_CYL"] = (f"observer reset after lost frames: settling for "
+            self.errors["IMBALANCE_CYL"] = (f"{self._reset_reason}: settling for "
                                             f"{self.settle_cycles} engine cycles")
+            self._reset_reason = "observer reset after lost frames"
         return out
 
-    def state(self) -> dict[str, Any]:
+    def _state(self) -> dict[str, Any]:
+        return _json_safe(self._own_state())
+
+    def _own_state(self) -> dict[str, Any]:
         return {**self._common_state(), "rpm": self.rpm,
                 "afr_cyl_est": self.cyl_est.tolist(), "afr_cyl_measured": self.cyl_meas.tolist(),
                 "harmonics": self.harmonics().tolist(), "diagnosis": self.diagnosis,
-                "candidate": list(self._candidate)}
+                "candidate": list(self._candidate), "diagnosis_state": self.diag_state,
+                "confidence": self.confidence, "cusum": self._cusum.tolist(),
+                "sigma": (math.sqrt(self._var) if self._var is not None else None),
+                "window_start_deg": (self.window_start(self.rpm) if self.rpm else None),
+                "design": self.loaded_design}
+
+
+def _json_safe(v: Any) -> Any:
+    """``v`` with every non-finite number as ``None`` (a state is JSON)."""
+    if isinstance(v, dict):
+        return {k: _json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_safe(x) for x in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
 
 
 class RodInversion(ObserverContract, _StreamObserver):

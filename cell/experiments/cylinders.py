@@ -38,8 +38,8 @@ from cell.bus.scenario import scenario_frames
 from cell.core.errors import ConfigError
 from cell.core.registry import Experiment
 from cell.estimators.cylinders import CYCLE, RodInversion, UegoInversion
-from cell.plant.cylinders import N_CYL
-from cell.plant.si_engine import steady_cycle
+from cell.plant.cylinders import N_CYL, CylinderParams
+from cell.plant.si_engine import SICycle, steady_cycle
 from cell.plant.si_turbo import si_turbo
 from cell.runtime.samples import find_sample_streams
 from cell.runtime.scheduler import Runtime
@@ -153,8 +153,8 @@ class TickRecorder:
         self.afr_true.append([sig[f"AFR_CYL_{i}_TRUE"] for i in range(1, N_CYL + 1)])
         vals = [ch[n].value if ch[n].status == "ok" else math.nan for n in TICK_CHANNELS]
         vals = [math.nan if v is None else v for v in vals]
-        s = self.uego.state()
-        self.rows.append([t, *vals, *s["afr_cyl_est"], *s["afr_cyl_measured"],
+        u = self.uego
+        self.rows.append([t, *vals, *u.cyl_est.tolist(), *u.cyl_meas.tolist(),
                           *(sig[f"IMEP_CYL_{i}_TRUE"] for i in range(1, N_CYL + 1))])
 
     def columns(self) -> dict[str, np.ndarray]:
@@ -166,14 +166,18 @@ class TickRecorder:
 
 
 def run_case(case: Case, db: CellDatabase | None = None,
-             wire: Callable[[list[can.Message]], list[can.Message]] | None = None) -> CaseResult:
+             wire: Callable[[list[can.Message]], list[can.Message]] | None = None, *,
+             cylinders: CylinderParams | None = None, design: dict[str, Any] | None = None,
+             cycle: SICycle | None = None) -> CaseResult:
     """Run one case offline (module docstring); ``wire`` may further impair the frames the
-    runtime receives (after the case's own ``drop``/``swap``)."""
+    runtime receives (after the case's own ``drop``/``swap``). ``cylinders`` is a plant
+    variant, ``design`` an imbalance design the UEGO observer loads, ``cycle`` a drive in
+    place of the case's steady point."""
     db = db or load()
-    comp = si_turbo(steady_cycle(case.rpm, case.load, case.duration), case.seed,
-                    imbalance=(0.0,) * N_CYL)
+    comp = si_turbo(cycle or steady_cycle(case.rpm, case.load, case.duration), case.seed,
+                    imbalance=(0.0,) * N_CYL, cylinders=cylinders)
     sim = Simulator(comp, db)
-    uego, rod = UegoInversion(record=True), RodInversion(record=True)
+    uego, rod = UegoInversion(record=True, design=design), RodInversion(record=True)
     rt = Runtime(db, [uego, rod])
     truth = SampleTruth(db)
     ticks = TickRecorder(rt, comp, uego)

@@ -42,13 +42,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import expm
 from scipy.signal import lfilter, lfilter_zi, ss2tf
 
 from cell.core.errors import ConfigError
+from cell.core.options import Option
 from cell.plant.base import Plant
 
 #: stoichiometric AFR of gasoline
@@ -94,6 +95,9 @@ class CylinderParams:
     sub_deg: float = 1.0
     rich_gain: float = 0.3
     """Relative IMEP gained per unit of λ below 1 (a rich cylinder burns a little more air)."""
+    exhaust_phase_deg: float = 0.0
+    """Extra exhaust transport phase, deg CA (a plant variant, ±60): each cylinder's gas
+    reaches the manifold this much later (earlier when negative) than its exhaust phase."""
 
 
 def cylinder_lambdas(lam: float, offsets: Sequence[float]) -> np.ndarray:
@@ -218,7 +222,7 @@ class Cylinders(Plant):
             self.firing_deg[cyl - 1] = pos * 720.0 / N_CYL
         grid = np.arange(0.0, 720.0, p.sub_deg)
         # exhaust owner of each grid angle; combustion torque and its cumulative integral
-        phase = (grid[None, :] - self.firing_deg[:, None] - p.evo_deg) % 720.0
+        phase = (grid[None, :] - self.firing_deg[:, None] - p.evo_deg - p.exhaust_phase_deg) % 720.0
         self._owner = np.argmax(phase < 720.0 / N_CYL, axis=0)
         th = (grid[None, :] - self.firing_deg[:, None]) % 720.0
         self._pulse = torque_pulse(th, p.burn_deg)  # (cyl, grid), per rad
@@ -338,5 +342,74 @@ class Cylinders(Plant):
         return out
 
 
-__all__ = ["CylinderParams", "Cylinders", "STOICH_AFR", "cylinder_lambdas", "parse_imbalance",
+# -- plant variants (what an observer cannot know) -------------------------------------------
+#: Bounds of the variant options: the exhaust transport phase, deg CA; each UEGO lag, s; the
+#: manifold mixing time constant, s.
+PHASE_RANGE = (-60.0, 60.0)
+LAG_RANGE = (0.005, 0.2)
+MIX_RANGE = (0.0005, 0.05)
+
+
+def parse_lags(text: str | Sequence[float]) -> tuple[float, float]:
+    """``"0.03,0.02"`` (s) -> ``(0.03, 0.02)``, the UEGO's two lags; :class:`ConfigError`
+    naming the bad part."""
+    parts = [p.strip() for p in text.split(",")] if isinstance(text, str) else list(text)
+    if len(parts) != 2:
+        raise ConfigError(f"--uego-lags {text!r}: two time constants TAU1,TAU2 in s, e.g. 0.025,0.020")
+    out = []
+    for part in parts:
+        try:
+            v = float(part)
+        except ValueError:
+            raise ConfigError(f"--uego-lags {text!r}: {part!r} is not a number") from None
+        if not math.isfinite(v) or not LAG_RANGE[0] <= v <= LAG_RANGE[1]:
+            raise ConfigError(f"--uego-lags {text!r}: each lag must be in {LAG_RANGE[0]:g}.."
+                              f"{LAG_RANGE[1]:g} s, got {part}")
+        out.append(v)
+    return out[0], out[1]
+
+
+def _in(lo: float, hi: float, unit: str):
+    def check(v: float) -> str | None:
+        if not math.isfinite(v) or not lo <= v <= hi:
+            return f"must be in [{lo:g}, {hi:g}] {unit}, got {v}"
+        return None
+    return check
+
+
+def _lags_check(v: str) -> str | None:
+    try:
+        parse_lags(v)
+    except ConfigError as exc:
+        return str(exc).split(": ", 1)[-1]
+    return None
+
+
+#: The crank-resolved plant's variant options (an engine profile splices them into its own).
+VARIANT_OPTIONS = (
+    Option("exhaust_phase", "--exhaust-phase", float, metavar="DEG", check=_in(*PHASE_RANGE, "deg"),
+           help="extra exhaust transport phase to the UEGO, deg crank angle (default 0; ±60)"),
+    Option("uego_lags", "--uego-lags", str, metavar="TAU1,TAU2", check=_lags_check,
+           help="the UEGO's two first-order lags, s (default 0.025,0.020)"),
+    Option("mixing", "--mixing", float, metavar="S", check=_in(*MIX_RANGE, "s"),
+           help="exhaust manifold mixing time constant, s (default 0.003)"),
+)
+
+
+def variant_params(plant: Mapping[str, object], base: CylinderParams | None = None) -> CylinderParams:
+    """The plant's constants with the variant options of ``plant`` (settings keys of
+    :data:`VARIANT_OPTIONS`; absent ones keep ``base``, default :class:`CylinderParams`)."""
+    p = base or CylinderParams()
+    kw: dict[str, float] = {}
+    if plant.get("exhaust_phase") is not None:
+        kw["exhaust_phase_deg"] = float(plant["exhaust_phase"])  # type: ignore[arg-type]
+    if plant.get("uego_lags") is not None:
+        kw["tau1"], kw["tau2"] = parse_lags(plant["uego_lags"])  # type: ignore[arg-type]
+    if plant.get("mixing") is not None:
+        kw["tau_mix"] = float(plant["mixing"])  # type: ignore[arg-type]
+    return replace(p, **kw) if kw else p
+
+
+__all__ = ["CylinderParams", "Cylinders", "VARIANT_OPTIONS", "parse_lags", "variant_params",
+           "STOICH_AFR", "cylinder_lambdas", "parse_imbalance",
            "relative_work", "rod_matrices", "torque_pulse"]

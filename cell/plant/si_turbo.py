@@ -41,7 +41,8 @@ from cell.core.registry import Run
 from cell.plant.base import Plant
 from cell.plant.catalyst import Catalyst, CatalystParams
 from cell.plant.composition import Composition
-from cell.plant.cylinders import CylinderParams, Cylinders, parse_imbalance
+from cell.plant.cylinders import (VARIANT_OPTIONS, CylinderParams, Cylinders, parse_imbalance,
+                                  variant_params)
 from cell.plant.si_airpath import SIAirPath, SIAirPathParams
 from cell.plant.si_engine import SI_CYCLES, SICycle, SIEngine, SIEngineParams
 
@@ -104,7 +105,8 @@ def _build(s: Run) -> Composition:
         raise ConfigError(f"--duty {duty!r} is not a duty cycle of {ENGINE_NAME}; choose one of: "
                           f"{', '.join(SI_CYCLES)}")
     return si_turbo(duty, s.seed, osc=s.plant.get("osc"), osc_drift=s.plant.get("osc_drift"),
-                    imbalance=s.plant.get("imbalance"), crank=s.plant.get("crank", "on") == "on")
+                    imbalance=s.plant.get("imbalance"), crank=s.plant.get("crank", "on") == "on",
+                    cylinders=variant_params(s.plant))
 
 
 def _osc_check(v: float) -> str | None:
@@ -147,5 +149,6 @@ SI_TURBO = registry.EngineProfile(
         Option("crank", "--crank", str, metavar="on|off", check=_crank_check,
                help="the crank-resolved cylinders, UEGO and crankshaft plant with its 6 deg "
                     "sample frames (default on)"),
+        *VARIANT_OPTIONS,
     ),
 )

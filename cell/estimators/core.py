@@ -319,6 +319,8 @@ class KalmanCore:
         self.nis: float | None = None
         self._log_likelihood: float | None = None
         self._nis_run = 0
+        #: true from a (re)start until the first step is accepted
+        self.fresh = True
 
     @property
     def mode(self) -> str:
@@ -448,6 +450,7 @@ class KalmanCore:
         if self.constraint is not None:
             x = np.asarray(self.constraint(x), dtype=float)
         self.x, self.P = x, P
+        self.fresh = False
 
     def _guard(self, P: np.ndarray) -> np.ndarray:
         r"""Symmetrise :math:`P` and lift eigenvalues below the floor

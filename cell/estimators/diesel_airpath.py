@@ -60,6 +60,25 @@ Q_STATES = (0.05, 0.5, 1e-4)
 Q_BIAS = 1e-3
 X0 = (101.3, 105.0, 5.0)
 
+#: Plausible ranges of the observers' input channels (the contract refuses a tick outside
+#: them): an absolute manifold pressure below 30 kPa is a sensor unplugged, not an engine
+#: (an all-zero ``AIRPATH_SENS`` frame); back-pressures as the DBC declares them.
+RANGES = {
+    "FUEL_RATE": (0.0, 3000.0), "ENGINE_SPEED": (0.0, 8000.0), "VGT_POS": (0.0, 100.0),
+    "EGR_POS": (0.0, 100.0), "EXH_BP_L": (-500.0, 20000.0), "EXH_BP_R": (-500.0, 20000.0),
+    "DSL_P_IM": (30.0, 1300.0), "DSL_P_EM": (30.0, 1300.0), "N_T": (0.0, 65000.0),
+}
+#: Bounds of the model states (kPa, kPa, krpm) beyond which an estimate has diverged, and of
+#: a bias state (the DBC range of ``Q_BIAS_n``).
+STATE_BOUNDS = {"P_IM": (5.0, 1500.0), "P_EM": (5.0, 1500.0), "N_T": (-5.0, 100.0)}
+BIAS_BOUND = (-1e4, 1e4)
+#: The model's domain guard: pressures (kPa) below this floor and back-pressures
+#: (mmH2O) outside the DBC range are clamped before the model sees them, so that no
+#: negative base reaches a power or a root (``(p_es/p_em) ** k`` of a negative ratio is
+#: complex) whatever the estimate does; the contract's state bounds then reset it.
+P_FLOOR = 1.0
+BP_RANGE = (-500.0, 20000.0)
+
 
 def _h(t, x, u, p):
     return np.asarray(x[:3], dtype=float) * _SCALE
@@ -85,13 +104,28 @@ class _CachedRhs:
     def f(self, t, x, u, p) -> np.ndarray:
         key = (np.asarray(x, dtype=float).tobytes(), np.asarray(u, dtype=float).tobytes())
         if key != self._key:
-            self._value = airpath_rhs(t, x, u, p)
+            self._value = airpath_rhs(t, *guard_domain(x, u), p)
             self._key = key
         return self._value
 
     def jacobian(self, t, x, u, p) -> np.ndarray:
         """:func:`airpath_jacobian` with its base point from the cache."""
         return airpath_jacobian(t, x, u, p, f0=self.f(t, x, u, p))
+
+
+def guard_domain(x, u) -> tuple[np.ndarray, np.ndarray]:
+    """The model's domain guard: ``x`` with its pressures at least :data:`P_FLOOR` and ``u``
+    with its back-pressures within :data:`BP_RANGE` (copies only when something is clamped)."""
+    x = np.asarray(x, dtype=float)
+    u = np.asarray(u, dtype=float)
+    if x[0] < P_FLOOR or x[1] < P_FLOOR:
+        x = x.copy()
+        x[:2] = np.maximum(x[:2], P_FLOOR)
+    lo, hi = BP_RANGE
+    if not (lo <= u[4] <= hi and lo <= u[5] <= hi):
+        u = u.copy()
+        u[4:6] = np.clip(u[4:6], lo, hi)
+    return x, u
 
 
 def default_model(params: AirPathParams | None = None) -> Model:
@@ -115,7 +149,14 @@ def default_observer(name: str = "airpath-default", sensors: Sequence[str] = RUN
     return ObserverBlock(name, default_model(), measurements={s: SIGNAL[s] for s in sensors},
                          Q=list(Q_STATES), R=[R_DIAG[s] for s in sensors], x0=list(X0),
                          P0=[100.0, 400.0, 100.0], rate=rate, channels=channels,
-                         prefix="AIRPATH_DEF")
+                         prefix="AIRPATH_DEF", **_contract(sensors, ()))
+
+
+def _contract(sensors: Sequence[str], biases: Sequence[str]) -> dict:
+    """The contract's settings of both observers: input ranges, state bounds, sigma bands."""
+    ins = [*INPUTS, *(SIGNAL[s] for s in sensors)]
+    return {"ranges": {ch: RANGES[ch] for ch in ins if ch in RANGES},
+            "state_bounds": STATE_BOUNDS | {b: BIAS_BOUND for b in biases}, "sd": STATES}
 
 
 def augmented_observer(Aq: np.ndarray, name: str = "airpath-augmented",
@@ -137,7 +178,8 @@ def augmented_observer(Aq: np.ndarray, name: str = "airpath-augmented",
                          Q=[*Q_STATES, *[Q_BIAS] * nq], R=[R_DIAG[s] for s in sensors],
                          x0=[*X0, *[0.0] * nq], P0=[100.0, 400.0, 100.0, *[100.0] * nq],
                          rate=rate, channels=channels, prefix="AIRPATH_AUG",
-                         units={f"Q_BIAS_{i + 1}": "" for i in range(nq)})
+                         units={f"Q_BIAS_{i + 1}": "" for i in range(nq)},
+                         **_contract(sensors, [f"Q_BIAS_{i + 1}" for i in range(nq)]))
 
 
 def load_design(path: str | Path) -> np.ndarray:

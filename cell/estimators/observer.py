@@ -32,8 +32,9 @@ from typing import Any
 
 import numpy as np
 
-from cell.runtime.blocks import Block, Param
+from cell.runtime.blocks import Param
 from cell.core.errors import ParamError
+from cell.estimators.contract import Estimate, ObserverContract
 from cell.estimators.core import GainSchedule, KalmanCore, Model
 
 
@@ -41,7 +42,7 @@ def _finite_or_none(v: float | None) -> float | None:
     return v if v is None or math.isfinite(v) else None
 
 
-class ObserverBlock(Block):
+class ObserverBlock(ObserverContract):
     """A Kalman / extended Kalman observer of a :class:`Model`, stepped by the runtime.
 
     Parameters
@@ -79,6 +80,18 @@ class ObserverBlock(Block):
     channels:
         Model state -> channel name of its estimate, overriding ``<PREFIX>_<STATE>`` (e.g.
         ``{"P_EM": "P_EM_EST"}`` to publish a DBC signal of that name).
+    ranges:
+        Input channel -> plausible ``(lo, hi)`` (the contract refuses a tick outside it).
+    state_bounds:
+        Model state -> ``(lo, hi)`` beyond which the estimate has diverged (reset).
+    sd:
+        Model states whose sigma band (the root of their diagonal element of P) is published, as
+        ``<CHANNEL>_SD`` (the state's channel and unit).
+    gap_ticks:
+        Ticks without valid input after which the outputs are stale (the contract).
+
+    The contract (:class:`~cell.estimators.contract.ObserverContract`) adds the output
+    ``<NAME>_CONF`` and owns plausibility, gaps and divergence.
 
     Tunable parameters (``set_params``, all or nothing): ``Q``, ``R``, ``P0`` (lists of
     diagonal elements), ``x0`` (a list), ``nis_gate`` and ``nis_window``. New ``Q``/``R``
@@ -109,6 +122,10 @@ class ObserverBlock(Block):
         nis_window: int = 0,
         units: Mapping[str, str] | None = None,
         channels: Mapping[str, str] | None = None,
+        ranges: Mapping[str, tuple[float, float]] | None = None,
+        state_bounds: Mapping[str, tuple[float, float]] | None = None,
+        sd: Sequence[str] = (),
+        gap_ticks: int = 10,
     ) -> None:
         self.model = model
         inputs = dict(inputs) if inputs is not None else {i: i for i in model.inputs}
@@ -140,6 +157,18 @@ class ObserverBlock(Block):
         super().__init__(name, list(dict.fromkeys(self._u_ch + self._z_ch + self._s_ch)),
                          self._x_out + self._hat_out, rate, units=model_units | dict(units or {}))
         n, m = len(model.states), len(measurements)
+        unknown = [s for s in (*(state_bounds or {}), *sd) if s not in model.states]
+        if unknown:
+            raise ParamError("state_bounds", f"{', '.join(unknown)} is not a model state "
+                                             f"({', '.join(model.states)})")
+        self.state_names = tuple(model.states)
+        bounds_list = None
+        if state_bounds:
+            bounds_list = [state_bounds.get(s, (-math.inf, math.inf)) for s in model.states]
+        sd_map = {model.states.index(s): f"{self._x_out[model.states.index(s)]}_SD" for s in sd}
+        self.declare(ranges=ranges, state_bounds=bounds_list, gap_ticks=gap_ticks, sd=sd_map,
+                     sd_units={ch: self.units[self._x_out[i]] for i, ch in sd_map.items()
+                               if self._x_out[i] in self.units})
         self.PARAMS = {
             "Q": Param("Q", float, "process noise covariance, one variance per state",
                        shape="diag", size=n, pd=True),
@@ -182,11 +211,17 @@ class ObserverBlock(Block):
         self.core.reset("reset requested")
         self._t = self._u = None
 
+    def _restart(self, reason: str) -> None:
+        if not self.core.fresh:  # a core that diverged has reset itself
+            self.core.reset(reason)
+        self._t = self._u = None
+
+    def estimate(self) -> Estimate:
+        core = self.core
+        return Estimate(core.x, core.P, core.y if core.updates else None, core.nis, core.dim_z)
+
     # -- stepping -------------------------------------------------------------------------
-    def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
-        for ch in self.inputs:
-            if not math.isfinite(inputs[ch]):
-                raise ArithmeticError(f"input {ch} is {inputs[ch]}")
+    def _observe(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         u = np.array([inputs[c] for c in self._u_ch], dtype=float)
         z = np.array([inputs[c] for c in self._z_ch], dtype=float)
         core, model = self.core, self.model
@@ -198,13 +233,12 @@ class ObserverBlock(Block):
         x_prior = core.x
         h, H = model.measurement(t, u, self._rows)
         core.update(z, H=H, h=h, s=[inputs[c] for c in self._s_ch] or None)
-        with np.errstate(all="ignore"):
-            z_hat = model.output(t, x_prior, u)
+        z_hat = model.output(t, x_prior, u)
         if not np.isfinite(z_hat).all():
             core.diverge("nonfinite", f"non-finite predicted output {z_hat.tolist()}")
         return dict(zip(self._x_out, core.x.tolist())) | dict(zip(self._hat_out, z_hat.tolist()))
 
-    def state(self) -> dict[str, Any]:
+    def _state(self) -> dict[str, Any]:
         """Estimate, covariance, gain and the last update's innovation statistics (JSON)."""
         core = self.core
         return {"t": self._t, "mode": core.mode, "states": list(self.model.states),

@@ -2,6 +2,8 @@
 
 import json
 
+import can
+
 import numpy as np
 import pytest
 
@@ -76,3 +78,67 @@ def test_default_observer_tracks_an_unbiased_engine():
     a = np.array([r for r in rows if r[0] > 20.0 and r[1] is not None], dtype=float)
     assert len(a) > 150
     assert abs(np.mean(a[:, 1] - a[:, 2])) < 3.0
+
+
+def test_unplugged_sensors_and_a_raw_minimum_are_refused_with_a_reason_and_recovered():
+    """Issue 20, point 1: 0.5 s of an all-zero AIRPATH_SENS frame (every value inside its DBC
+    range), then EXH_BP_R at its raw minimum: the observers do not step on them (no
+    TypeError, no estimate at 1e10), their outputs are invalid with the reason, and they
+    recover on the simulator's truth once the frames are good again."""
+    db = load()
+    sens, bp = db.message("AIRPATH_SENS").frame_id, db.message("EXH_BP").frame_id
+    raw_min = (-(2 ** 31)).to_bytes(4, "little", signed=True)
+
+    def wire(frames):
+        out = []
+        for m in frames:
+            if m.arbitration_id == sens and 6.0 <= m.timestamp < 6.5:
+                m = can.Message(arbitration_id=sens, data=bytes(8), timestamp=m.timestamp,
+                                is_extended_id=m.is_extended_id)
+            elif m.arbitration_id == bp and 8.0 <= m.timestamp < 8.5:
+                m = can.Message(arbitration_id=bp, data=bytes(m.data[:4]) + raw_min,
+                                timestamp=m.timestamp, is_extended_id=m.is_extended_id)
+            out.append(m)
+        return out
+
+    hold = DutyCycle("hold", [(0.0, 1500.0, 0.75)], 12.0)
+    sim = Simulator(large_diesel(hold, 0, biases=NO_BIAS, pem_sensor=False), db)
+    blocks = airpath_observers()
+    rt = Runtime(db, blocks)
+    names = ("DSL_P_IM_EST_DEFAULT", "DSL_P_IM_EST")
+    rows = []
+    Lockstep(sim, rt, stride=2, wire=wire, on_tick=lambda t: rows.append(
+        (t, rt.channels["DSL_P_IM_TRUE"].value,
+         *[(rt.channels[n].status, rt.channels[n].reason, rt.channels[n].value) for n in names]))
+             ).run(12.0)
+    for t, truth, *chans in rows:
+        for status, reason, value in chans:
+            if 6.05 <= t < 6.5:
+                assert status == "invalid" and "DSL_P_IM = 0 outside its plausible range" in reason
+            if 8.05 <= t < 8.5:
+                assert status == "invalid" and "EXH_BP_R" in reason and "plausible" in reason
+            if value is not None and status == "ok":
+                assert 5.0 < value < 1500.0  # never a diverged estimate on the bus
+            if t > 10.0 or 5.0 < t < 6.0:
+                assert status == "ok" and abs(value - truth) < 0.05 * truth, (t, value, truth)
+    for b in blocks:
+        c = b.state()["contract"]
+        assert c["refused"]["DSL_P_IM"] >= 20 and c["refused"]["EXH_BP_R"] >= 20
+        assert c["status"] == "ok" and c["gaps"] >= 1  # stale for 0.5 s, then restarted
+        assert "resumed after a gap" in c["last_reset_reason"]
+
+
+def test_the_models_domain_guard_keeps_powers_real_on_negative_pressures():
+    """The observer's model never hands a negative base to a power: a state at -1e10 kPa or a
+    back-pressure at its raw minimum gives finite real derivatives (the plant's own model
+    raises TypeError there)."""
+    from cell.estimators.diesel_airpath import default_model
+    from cell.plant.diesel_airpath import AirPathParams, airpath_rhs
+
+    u = np.array([200.0, 1500.0, 50.0, 20.0, 600.0, -21474836.48])
+    with pytest.raises(TypeError):
+        airpath_rhs(0.0, np.array([150.0, 200.0, 40.0]), u, AirPathParams())
+    model = default_model()
+    for x in ([150.0, 200.0, 40.0], [-1e10, -1e10, 1e10], [0.0, 0.0, 0.0]):
+        f = model.f(0.0, np.array(x), u, model.params)
+        assert f.dtype == float and np.isfinite(f).all()

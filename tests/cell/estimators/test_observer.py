@@ -47,8 +47,9 @@ def test_outputs_follow_the_naming_convention_and_units():
     obs = observer()
     assert obs.family == "observer" and obs.kind == "observer"
     assert obs.inputs == ["VALVE_POS_L", "EXH_BP_L"]
-    assert obs.outputs == ["BPO_BP", "BPO_GAIN", "BPO_BP_HAT", "BPO_FLOWISH_HAT"]
-    assert obs.units == {"BPO_BP": "mmH2O", "BPO_BP_HAT": "mmH2O", "BPO_FLOWISH_HAT": "a.u."}
+    assert obs.outputs == ["BPO_BP", "BPO_GAIN", "BPO_BP_HAT", "BPO_FLOWISH_HAT", "BPO_CONF"]
+    assert obs.units == {"BPO_BP": "mmH2O", "BPO_BP_HAT": "mmH2O", "BPO_FLOWISH_HAT": "a.u.",
+                         "BPO_CONF": "1"}
     assert ObserverBlock("x", bp_model(), inputs={"VALVE": "V"}, measurements={"BP": "B"},
                          Q=1.0, R=1.0, units={"x_GAIN": "-"}).units["x_GAIN"] == "-"
 

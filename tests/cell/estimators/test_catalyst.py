@@ -88,7 +88,10 @@ def test_states_stay_bounded_and_outputs_are_named():
         np.testing.assert_allclose(P, P.T, atol=0)
         assert np.linalg.eigvalsh(P).min() > 0.0
     assert set(out) == {"SOX_EST", "PHI_1_EST", "PHI_2_EST", "PHI_3_EST", "OSC_EST",
-                        "LAMBDA_MID_EST"}
+                        "LAMBDA_MID_EST", "TWC_CONF", "OSC_EST_SD", "SOX_EST_SD"}
+    # the bands come from P: OSC's own variance, and that of the mean of the three φ
+    assert out["OSC_EST_SD"] == pytest.approx(math.sqrt(P[3, 3]))
+    assert out["SOX_EST_SD"] == pytest.approx(math.sqrt(np.ones(3) @ P[:3, :3] @ np.ones(3)) / 3)
     assert out["SOX_EST"] == pytest.approx((out["PHI_1_EST"] + out["PHI_2_EST"]
                                             + out["PHI_3_EST"]) / 3)
 
@@ -96,9 +99,9 @@ def test_states_stay_bounded_and_outputs_are_named():
 @pytest.mark.parametrize("channel,value,needle", [
     ("LAMBDA_PRE", math.nan, "input LAMBDA_PRE is nan"),
     ("EXH_MASS_FLOW", math.inf, "input EXH_MASS_FLOW is inf"),
-    ("LAMBDA_MID", 0.2, "LAMBDA_MID = 0.2 is outside its plausible range [0.5, 16]"),
-    ("T_CAT", 2000.0, "T_CAT = 2000 is outside its plausible range [-50, 1200]"),
-    ("EXH_MASS_FLOW", -0.01, "EXH_MASS_FLOW = -0.01 is outside"),
+    ("LAMBDA_MID", 0.2, "LAMBDA_MID = 0.2 outside its plausible range [0.5, 16]"),
+    ("T_CAT", 2000.0, "T_CAT = 2000 outside its plausible range [-50, 1200]"),
+    ("EXH_MASS_FLOW", -0.01, "EXH_MASS_FLOW = -0.01 outside"),
 ])
 def test_bad_inputs_are_refused_and_the_state_is_kept(channel, value, needle):
     ob = TWCObserver()
@@ -223,7 +226,7 @@ def test_out_of_range_frame_marks_outputs_invalid_and_keeps_the_state():
     rt.ingest(bad)
     rt.advance(3.1)
     status, reason = rt.channel("OSC_EST").status_at(3.1)
-    assert status == "invalid" and "LAMBDA_PRE = 16.3837 is outside" in reason
+    assert status == "invalid" and "LAMBDA_PRE = 16.3837 outside" in reason
     np.testing.assert_array_equal(block.core.x, x)
 
 

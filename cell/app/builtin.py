@@ -9,6 +9,7 @@ from cell.control.backpressure import BACKPRESSURE_CONTROLLERS
 from cell.core import registry
 from cell.core.registry import BlockFamily, BlockSet
 
+from cell.design.catalyst import TWC_DESIGN
 from cell.design.diesel_airpath import BIAS_DESIGN
 from cell.design.si_airpath import AIRPATH_DESIGN
 from cell.estimators.backpressure import native_filters
@@ -62,3 +63,4 @@ registry.experiment(BIAS)
 # design tools
 registry.design(AIRPATH_DESIGN)
 registry.design(BIAS_DESIGN)
+registry.design(TWC_DESIGN)

@@ -68,6 +68,9 @@ def add_runtime_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dbc", action="append", default=None, metavar="PATH",
                    help="add a DBC file, or a folder of them, to the cell's own dbc/*.dbc "
                         "(repeatable): your ECU and DAQ frames decode into channels")
+    p.add_argument("--design", action="append", dest="designs", default=None, metavar="FILE",
+                   help="load a design file into the observer it names (repeatable; "
+                        "testcell design NAME writes one)")
     add_block_options(p)  # the block sets' own: --osc-init, --bias-design, --no-controllers
 
 
@@ -110,6 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--native", action="store_true",
                     help="with --script: also run the native filters, observers and controllers")
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
+    rp.add_argument("--state", default=None, type=Path, metavar="FILE",
+                    help="apply a tuning file as testcell up writes it (read only)")
     add_runtime_options(rp)
     rp.set_defaults(func=cmd_replay)
 

@@ -48,6 +48,7 @@ from cell.estimators.catalyst import DEFAULT_Q, Q4_DEFAULT, TWCObserver
 from cell.sim.lockstep import Lockstep
 from cell.plant.si_engine import SI_CYCLES
 from cell.plant.si_turbo import si_turbo
+from cell.plant.catalyst import catalyst_params
 from cell.plant.catalyst_model import TWCKinetics
 from cell.core.registry import Experiment
 from cell.runtime.scheduler import Runtime
@@ -79,7 +80,8 @@ class Recording:
 
 def record(osc_true: float = 1.0, duration: float | None = None, *, cycle: str = "ftp",
            seed: int = 0, osc_step: tuple[float, float] | None = None, osc_drift: float = 0.0,
-           progress: bool = False, runtime_blocks=()) -> Recording:
+           progress: bool = False, runtime_blocks=(), variant: dict | None = None,
+           signals: dict | None = None) -> Recording:
     """Run the si-turbo engine in lockstep with a runtime; record the observer's inputs and
     the truth at every MED tick.
 
@@ -94,11 +96,18 @@ def record(osc_true: float = 1.0, duration: float | None = None, *, cycle: str =
         runtime to the simulator as a frame, as ``testcell scenario`` sends it.
     runtime_blocks:
         Blocks to run inside the runtime as well (a test compares them with :func:`observe`).
+    variant:
+        The catalyst plant's variant options (:data:`cell.plant.catalyst.CATALYST_OPTIONS`
+        keys, e.g. ``{"lambda_sensor": "composition"}``; default: the cell's own plant).
+    signals:
+        A dict to fill with the observer's four signals at every plant step (10 ms) as
+        ``(times, values)``, the input of :func:`cell.design.catalyst.design`.
     """
     from tqdm import tqdm
 
     db = dbc_mod.load()
-    plant = si_turbo(cycle, seed, osc=osc_true, osc_drift=osc_drift, crank=False)
+    plant = si_turbo(cycle, seed, osc=osc_true, osc_drift=osc_drift, crank=False,
+                     catalyst=catalyst_params(variant) if variant else None)
     sim = Simulator(plant, db)
     rt = Runtime(db, list(runtime_blocks))
     duration = plant.duration if duration is None else float(duration)
@@ -121,14 +130,20 @@ def record(osc_true: float = 1.0, duration: float | None = None, *, cycle: str =
     loop = Lockstep(sim, rt, stride=stride, on_tick=on_tick)
     n = round(duration / sim.dt)
     per_s = round(1.0 / sim.dt)
+    raw: list[list[float]] = []
     with tqdm(total=round(duration), unit="s", desc=f"si-turbo {cycle} osc {osc_true:g}",
               disable=not progress) as bar:
         for k, _ in loop.steps(n):
+            if signals is not None:
+                raw.append([sim.t, *(plant[name] for name in INPUTS)])
             if step_at is not None and k == step_at:
                 for msg in scenario_frames(db, {"osc": osc_step[1]}, sim.t):
                     rt.outbox.append(msg)  # sent at the next exchange, like POST /scenario
             if (k + 1) % per_s == 0:
                 bar.update(1)
+    if signals is not None and raw:
+        r = np.array(raw)
+        signals.update({name: (r[:, 0], r[:, i + 1]) for i, name in enumerate(INPUTS)})
     a = np.array(rows, dtype=float).reshape(len(rows), len(names))
     cols = {name: a[:, i] for i, name in enumerate(names)}
     inputs = {k: cols[k] for k in INPUTS}

@@ -276,7 +276,7 @@ def fit(windows: Sequence[Window], osc: float, lags: Sequence[str] = LAMBDA_LAGS
     fits = {}
     for lag in lags:
         tau, cost, _ = fit_sensor(train_w, lag)
-        sol = least_squares(lambda p: residuals(train, start, lag, (tau, *p), osc),
+        sol = least_squares(lambda p, lag=lag, tau=tau: residuals(train, start, lag, (tau, *p), osc),
                             x0=[0.02, 1.0], bounds=([0.0, 0.1], [0.5, 10.0]),
                             x_scale=[0.05, 0.5], diff_step=[0.5, 0.05], max_nfev=30)
         r_fit = sol.fun

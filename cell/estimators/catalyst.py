@@ -80,7 +80,6 @@ from typing import Any
 
 import numpy as np
 
-from cell.core.errors import ParamError
 from cell.core.options import Option
 from cell.core.registry import BlockSet
 from cell.runtime.blocks import Param

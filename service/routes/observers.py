@@ -25,7 +25,7 @@ def put_design(name: str, cell: CellDep,
                    "lambda_lag": "composition", "tau_lambda": 0.12}}])) -> BlockOut:
     """Load a design into the observer; the estimate restarts from it at the next tick."""
     try:
-        cell.load_design(name, design, source="PUT /observers/{name}/design".format(name=name))
+        cell.load_design(name, design, source=f"PUT /observers/{name}/design")
     except ConfigError as exc:
         raise HTTPException(status_code=422, detail=str(exc)) from None
     return BlockOut(**cell.block("observer", name))

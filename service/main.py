@@ -12,15 +12,16 @@ from cell.app.cell import Cell
 
 from . import errors
 from .metrics import FrameRates, Metrics
-from .routes import (channels, engine, families, filters, health, metrics, page, scenario, scripts,
-                     simulator, stream)
+from .routes import (channels, engine, families, filters, health, metrics, observers, page,
+                     scenario, scripts, simulator, stream)
 from .schemas import ERROR_RESPONSES
 from .security import Security, SecurityMiddleware
 from .stream import StreamHub
 from .routes.blocks import block_router
 
 #: Routes a block family has beyond GET/PATCH, by family name.
-FAMILY_ROUTES: dict[str, Callable[[APIRouter], None]] = {"filter": filters.add_routes}
+FAMILY_ROUTES: dict[str, Callable[[APIRouter], None]] = {"filter": filters.add_routes,
+                                                         "observer": observers.add_routes}
 
 
 def create_app(cell: Cell, security: Security | None = None) -> FastAPI:

@@ -5,8 +5,11 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from typing import Any
+
 from cell.bus.dbc import load
 from cell.core import registry
+from cell.core.errors import ConfigError
 from cell.core.settings import Settings
 from cell.runtime.plausibility import read_file
 from cell.runtime.scheduler import Rates, Runtime
@@ -30,6 +33,10 @@ def build_runtime(settings: Settings, store=None):
             if block_set.applies_to(settings.engine):
                 for block in block_set.build(settings):
                     rt.add_block(block)
+    for path in settings.designs:
+        load_design_file(rt, path)
+    if settings.state is not None and store is None:
+        restore_state(rt, settings.state)
     scripts = ScriptManager(rt, store)
     if settings.scripts:
         scripts.load_files([Path(p) for p in settings.scripts])
@@ -38,3 +45,57 @@ def build_runtime(settings: Settings, store=None):
         for problem in scripts.load_defaults(shipped=shipped):
             log.warning("%s", problem)
     return rt, scripts
+
+
+def load_design(rt: Runtime, design: Any, source: str, name: str | None = None) -> str:
+    """Load a design object into the observer it names (``name``: the one it must name);
+    returns the observer's name. :class:`ConfigError` names an observer that is not in the
+    runtime, one that takes no design, or what is wrong with the design (the previous one
+    stays)."""
+    from cell.core.errors import UnknownBlockError
+
+    if not isinstance(design, dict) or not isinstance(design.get("observer"), str):
+        raise ConfigError(f"{source}: field 'observer' (the observer it is for) is missing")
+    who = design["observer"]
+    if name is not None and who != name:
+        raise ConfigError(f"{source}: names observer {who!r}, not {name!r}")
+    try:
+        block = rt.block(who, "observer")
+    except UnknownBlockError:
+        known = [b.name for b in rt.blocks.values() if b.family == "observer"]
+        raise ConfigError(f"{source}: names observer {who!r}, which this cell does not run "
+                          f"(its observers: {', '.join(known) or 'none'})") from None
+    if not callable(getattr(block, "load_design", None)):
+        raise ConfigError(f"{source}: observer {who!r} takes no design")
+    block.load_design(design, source)
+    return who
+
+
+def load_design_file(rt: Runtime, path: str | Path) -> str:
+    """Read a design file (``--design FILE``) and load it (:func:`load_design`)."""
+    from cell.estimators.contract import read_design
+
+    return load_design(rt, read_design(path), str(path))
+
+
+def restore_state(rt: Runtime, path: str | Path) -> list[str]:
+    """Apply a tuning file as ``up`` writes it (``--state FILE`` of ``replay`` and the
+    experiments), read only: the file is never written. A missing or unreadable file is
+    refused (:class:`ConfigError`), not set aside."""
+    import json
+
+    from cell.app.tuning import TuningStore, _shape_problem
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"--state {path}: no such file") from None
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"--state {path}: not a readable tuning file: {exc}") from None
+    problem = _shape_problem(data)
+    if problem:
+        raise ConfigError(f"--state {path}: {problem}")
+    store = TuningStore(path)
+    store.data = data
+    return store.restore(rt)

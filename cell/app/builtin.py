@@ -10,6 +10,7 @@ from cell.core import registry
 from cell.core.registry import BlockFamily, BlockSet
 
 from cell.design.cylinders import IMBALANCE_DESIGN
+from cell.design.catalyst import TWC_DESIGN
 from cell.design.diesel_airpath import BIAS_DESIGN
 from cell.design.si_airpath import AIRPATH_DESIGN
 from cell.estimators.backpressure import native_filters
@@ -66,3 +67,4 @@ registry.experiment(ROBUSTNESS)
 registry.design(AIRPATH_DESIGN)
 registry.design(BIAS_DESIGN)
 registry.design(IMBALANCE_DESIGN)
+registry.design(TWC_DESIGN)

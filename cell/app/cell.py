@@ -245,6 +245,14 @@ class Cell:
                     self.unsaved.clear()  # the whole file is written: nothing left unsaved
             return params
 
+    def load_design(self, name: str, design: dict[str, Any], source: str = "design") -> None:
+        """Load a design into the observer ``name`` (all or nothing: a bad design raises
+        :class:`~cell.core.errors.ConfigError` naming the field and the previous one stays)."""
+        from cell.app.assemble import load_design
+
+        with self.runtime.lock:
+            load_design(self.runtime, design, source, name=name)
+
     # -- commands to the bus ----------------------------------------------------------
     def send(self, frames: Iterable[can.Message]) -> None:
         """Put frames on the bus with the runtime's next outputs."""

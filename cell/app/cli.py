@@ -71,6 +71,9 @@ def add_runtime_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plausibility", type=Path, default=None, metavar="FILE",
                    help="YAML or JSON list of {signal, min, max, rate}: ranges and rate limits "
                         "(units/s) over the DBC's; a value outside them is invalid")
+    p.add_argument("--design", action="append", dest="designs", default=None, metavar="FILE",
+                   help="load a design file into the observer it names (repeatable; "
+                        "testcell design NAME writes one)")
     add_block_options(p)  # the block sets' own: --osc-init, --bias-design, --no-controllers
 
 
@@ -113,6 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--native", action="store_true",
                     help="with --script: also run the native filters, observers and controllers")
     rp.add_argument("--quiet", action="store_true", help="no progress bar")
+    rp.add_argument("--state", default=None, type=Path, metavar="FILE",
+                    help="apply a tuning file as testcell up writes it (read only)")
     add_runtime_options(rp)
     rp.set_defaults(func=cmd_replay)
 

@@ -97,7 +97,7 @@ _ENV_PARSERS: dict[str, Callable[[str], Any]] = {
     "plausibility": Path,
     "native": parse_bool, "no_sim": parse_bool, "protect_reads": parse_bool,
     "max_body": int, "max_script": int,
-    "dbc": words, "scripts": words, "plugins": words,
+    "dbc": words, "scripts": words, "plugins": words, "designs": words,
 }
 
 
@@ -126,6 +126,8 @@ class Settings:
     """The block sets' own options, by key (``osc_init``, ``bias_design``, ...)."""
     plausibility: Path | None = None
     """A cell file of signal ranges and rate limits over the DBC's (:mod:`cell.runtime.plausibility`)."""
+    designs: tuple[str, ...] = ()
+    """Design files (``--design FILE``, repeatable), each naming its observer."""
     # -- the service --------------------------------------------------------------------
     host: str = "127.0.0.1"
     port: int = 8000
@@ -200,7 +202,7 @@ class Settings:
         """Settings from a parsed command line: every option that is a setting key."""
         known = set(cls.keys())
         given = {k: v for k, v in vars(args).items() if k in known}
-        for key in ("dbc", "scripts", "plugins"):
+        for key in ("dbc", "scripts", "plugins", "designs"):
             if given.get(key) is not None:
                 given[key] = tuple(str(p) for p in given[key])
         for key in ("native", "no_sim"):

@@ -82,7 +82,7 @@ import numpy as np
 
 from cell.core.options import Option
 from cell.core.registry import BlockSet
-from cell.runtime.blocks import Block, Param
+from cell.runtime.blocks import Param
 from cell.plant.catalyst_model import (
     TWCKinetics,
     feed_gas,
@@ -90,6 +90,7 @@ from cell.plant.catalyst_model import (
     rate_constants,
     residence_time,
 )
+from cell.estimators.contract import DesignError, Estimate, ObserverContract
 from cell.estimators.core import KalmanCore
 from cell.estimators.observer import core_state
 
@@ -114,6 +115,11 @@ Q4_DEFAULT = 2e-5
 DEFAULT_Q = (1e-4, 1e-4, 1e-4, Q4_DEFAULT)
 DEFAULT_R = 1e-4
 SCALE_W = 0.03
+#: What the λ sensors' lag may act on (the plant's ``--lambda-sensor``).
+LAMBDA_LAGS = ("lambda", "composition")
+#: A design's sensor model and kinetics: key -> (lo, hi) for the numbers.
+DESIGN_RANGES: dict[str, tuple[float, float]] = {
+    "tau_lambda": (0.0, 1.0), "dead_time": (0.0, 0.5), "kinetics_scale": (0.1, 10.0)}
 
 
 # -- the model: f, g and their Jacobians ------------------------------------------------------
@@ -211,6 +217,33 @@ def model_C(x, u, k: TWCKinetics = MODEL_KINETICS) -> np.ndarray:
     return np.array([[g_o2[j] / C - g_co[j] / (2.0 * C) for j in range(4)]])
 
 
+def carbon_share(lam: float, k: TWCKinetics) -> float:
+    """D = 2 x the carbon mole fraction of feed gas of λ: the denominator of eq. 12 per mole
+    of gas (the numerator is λ D), for the lag on composition."""
+    return 2.0 * feed_gas(lam, 1.0, k)[2]
+
+
+def undo_composition_lag(m: float, Np: float, Dp: float, a: float, k: TWCKinetics
+                         ) -> tuple[float, float, float]:
+    r"""The feed λ that moved a composition-lagged sensor from ``(Np, Dp)`` to read ``m``, and
+    the sensor's new ``(N, D)``.
+
+    The sensor reads :math:`N_s / D_s` with :math:`N_s \leftarrow N_p + a(\lambda D(\lambda)
+    - N_p)` and likewise :math:`D_s`, so :math:`a D(\lambda)(\lambda - m) = (1 - a)(m D_p -
+    N_p)`; D is constant when rich and :math:`2 y_C / (1 + c(\lambda - 1))` when lean (module
+    :mod:`cell.plant.catalyst_model`), which gives λ in closed form on either side.
+    """
+    r = (1.0 - a) * (m * Dp - Np) / (a * 2.0 * k.y_c)
+    lam = m + r
+    if lam > 1.0:
+        c = k.y_c / k.y_o2_air
+        den = 1.0 - r * c
+        lam = (m + r * (1.0 - c)) / den if den > 1e-9 else 16.0
+    lam = min(max(lam, 0.5), 16.0)
+    D = carbon_share(lam, k)
+    return lam, Np + a * (lam * D - Np), Dp + a * (D - Dp)
+
+
 def scale(lam: float) -> tuple[float, float]:
     """The measurement scale s(λ) and its slope (module notes)."""
     th = math.tanh((lam - 1.0) / SCALE_W)
@@ -257,7 +290,7 @@ def predict(x: list[float], op: Operating, dt: float, max_step: float, bounds: t
 
 
 # -- the block ----------------------------------------------------------------------------------
-class TWCObserver(Block):
+class TWCObserver(ObserverContract):
     """The dual EKF of seed 000 as a runtime block (family ``observer``).
 
     Inputs: ``EXH_MASS_FLOW``, ``T_CAT``, ``LAMBDA_PRE`` (u, eq. 18) and ``LAMBDA_MID``
@@ -302,12 +335,13 @@ class TWCObserver(Block):
     ``P0`` acts at the next reset.
     """
 
-    kind = "observer"
-    family = "observer"
     VOLATILE = ("osc_init",)
     INPUTS = ("EXH_MASS_FLOW", "T_CAT", "LAMBDA_PRE", "LAMBDA_MID")
-    OUTPUTS = ("SOX_EST", "PHI_1_EST", "PHI_2_EST", "PHI_3_EST", "OSC_EST", "LAMBDA_MID_EST")
-    STATES = ("PHI_1", "PHI_2", "PHI_3", "OSC")
+    OUTPUTS = ("SOX_EST", "PHI_1_EST", "PHI_2_EST", "PHI_3_EST", "OSC_EST", "LAMBDA_MID_EST",
+               "SOX_EST_SD")
+    #: The confidence bands beside the estimates: runtime channels, not on the bus.
+    BANDS = ("OSC_EST_SD", "SOX_EST_SD")
+    state_names = STATES = ("PHI_1", "PHI_2", "PHI_3", "OSC")
 
     def __init__(self, name: str = "twc", *, kinetics: TWCKinetics | None = None,
                  Q: Any = DEFAULT_Q, R: Any = DEFAULT_R, P0: Any = (0.1, 0.1, 0.1, 1e-3),
@@ -316,9 +350,18 @@ class TWCObserver(Block):
                  nis_gate: float = 0.9999, nis_window: int = 100, blank_lambda: float = 1.1,
                  blank_hold: float = 0.5, adapt_temp: float = 350.0, tau_lambda: float = 0.1,
                  lead: bool = True, innovation_limit: float = 3.0, iterations: int = 4,
-                 input_at_end: bool = True) -> None:
-        super().__init__(name, list(self.INPUTS), list(self.OUTPUTS), rate)
-        self.kinetics = kinetics or MODEL_KINETICS
+                 input_at_end: bool = True, lambda_lag: str = "lambda",
+                 dead_time: float = 0.0) -> None:
+        super().__init__(name, list(self.INPUTS), list(self.OUTPUTS), rate,
+                         units={"OSC_EST_SD": "1", "SOX_EST_SD": "1"})
+        self.declare(ranges=INPUT_RANGES, sd={3: "OSC_EST_SD"}, gap_ticks=10)
+        self.base_kinetics = kinetics or MODEL_KINETICS
+        self.kinetics = self.base_kinetics
+        self.kinetics_scale = 1.0
+        self.lambda_lag = str(lambda_lag)
+        self.dead_time = float(dead_time)
+        self.designed: dict[str, Any] | None = None
+        self._history: list[tuple[float, float, float]] = []
         self.max_step = float(max_step)
         self.max_gap = float(max_gap)
         self.blank_lambda = float(blank_lambda)
@@ -386,39 +429,146 @@ class TWCObserver(Block):
         restart = [k for k in ("osc_init", "phi_init") if k in checked]
         if restart:
             what = ", ".join(f"{k} = {getattr(self, k):g}" for k in restart)
-            self.core.reset(f"restarted: {what}")
-            self._t = self._u = self._pre_prev = self._y_sensor = None
+            self._reset_estimate(f"restarted: {what}")
 
     def reset(self) -> None:
         """Restart from the initial state at the next tick (counted as a reset)."""
-        self.core.reset("reset requested")
+        self._reset_estimate("reset requested")
+
+    # -- the contract's hooks -------------------------------------------------------------------
+    def estimate(self) -> Estimate | None:
+        core = self.core
+        return Estimate(core.x, core.P, core.y, core.nis, 1) if self._t is not None else None
+
+    def _restart(self, reason: str) -> None:
+        """Forget the estimate. After a gap in the inputs only φ and its covariance restart:
+        OSC is the slow parameter a second's silence cannot change, so it is kept, with its
+        variance grown by Q₄ per tick missed (no prediction over inputs nobody saw)."""
+        core = self.core
+        gap = reason.startswith("resumed after a gap") and self._t is not None
+        osc, p_osc = float(core.x[3]), float(core.P[3, 3])
+        core.reset(reason)
+        if gap:
+            self.skipped_gaps += 1
+            missed = max(float(reason.split("gap of ")[1].split(" s")[0]) / self.max_gap, 1.0)
+            x = core.x.copy()
+            x[3] = osc
+            P = core.P.copy()
+            P[3, 3] = p_osc + core.Q[3, 3] * missed
+            core.x, core.P = x, P
         self._t = self._u = self._pre_prev = self._y_sensor = None
+        self._history = []
+
+    def _state(self) -> dict[str, Any]:
+        return {
+            "t": self._t,
+            "states": list(self.STATES),
+            **core_state(self.core),
+            "skipped_gaps": self.skipped_gaps,
+            "blanked": self.blanked,
+            "osc_frozen": self.frozen,
+            "innovations_limited": self.limited,
+            "iterated_updates": self.iterated,
+            "sensor_model": self.sensor_model(),
+            "design": None if self.designed is None else self.designed.get("source"),
+        }
+
+    # -- designs ------------------------------------------------------------------------------------
+    def sensor_model(self) -> dict[str, Any]:
+        """The λ sensors and kinetics the observer assumes (what ``testcell design twc``
+        identifies)."""
+        return {"lambda_lag": self.lambda_lag, "tau_lambda": self.tau_lambda,
+                "dead_time": self.dead_time, "kinetics_scale": self.kinetics_scale}
+
+    def _design_payload(self) -> dict[str, Any]:
+        return {"identified": self.sensor_model()}
+
+    def _check_design(self, design: Mapping[str, Any]) -> dict[str, Any]:
+        got = design.get("identified")
+        if got is None:
+            return {}
+        if not isinstance(got, Mapping):
+            raise DesignError("field 'identified' must be an object")
+        known = ("lambda_lag", *DESIGN_RANGES)
+        for key in got:
+            if key not in known:
+                raise DesignError(f"identified.{key}: unknown; known: {', '.join(known)}")
+        out: dict[str, Any] = {}
+        if "lambda_lag" in got:
+            if got["lambda_lag"] not in LAMBDA_LAGS:
+                raise DesignError(f"identified.lambda_lag: must be one of {', '.join(LAMBDA_LAGS)}, "
+                                  f"got {got['lambda_lag']!r}")
+            out["lambda_lag"] = got["lambda_lag"]
+        for key, (lo, hi) in DESIGN_RANGES.items():
+            if key in got:
+                v = got[key]
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not (
+                        math.isfinite(v) and lo <= v <= hi):
+                    raise DesignError(f"identified.{key}: must be a number in [{lo:g}, {hi:g}], "
+                                      f"got {v!r}")
+                out[key] = float(v)
+        if out.get("kinetics_scale", 1.0) <= 0:
+            raise DesignError("identified.kinetics_scale: must be > 0")
+        return out
+
+    def _use_design(self, checked: dict[str, Any]) -> None:
+        if "lambda_lag" in checked:
+            self.lambda_lag = checked["lambda_lag"]
+        if "tau_lambda" in checked:
+            self.tau_lambda = checked["tau_lambda"]
+        if "dead_time" in checked:
+            self.dead_time = checked["dead_time"]
+        if "kinetics_scale" in checked:
+            f = self.kinetics_scale = checked["kinetics_scale"]
+            self.kinetics = self.base_kinetics.scaled(A1=f, A2=f)
+        self.designed = dict(checked)
+
+    def load_design(self, design: Any, source: str = "design") -> None:
+        super().load_design(design, source)
+        if self.designed is not None:
+            self.designed["source"] = source
 
     # -- stepping -------------------------------------------------------------------------------
-    def _checked(self, inputs: Mapping[str, float]) -> tuple[float, float, float, float]:
-        vals = []
-        for ch in self.INPUTS:
-            v = inputs[ch]
-            lo, hi = INPUT_RANGES[ch]
-            if not math.isfinite(v):
-                raise ArithmeticError(f"input {ch} is {v}; refused, the estimate is kept")
-            if not lo <= v <= hi:
-                raise ArithmeticError(f"input {ch} = {v:g} is outside its plausible range "
-                                      f"[{lo:g}, {hi:g}]; refused, the estimate is kept")
-            vals.append(float(v))
-        return vals[0], vals[1], vals[2], vals[3]
+    def _delayed(self, t: float, mdot: float, T_cat: float) -> tuple[float, float]:
+        """ṁ and T_CAT at ``t - dead_time`` (linear between ticks): what the gas the λ sensors
+        show at ``t`` went through."""
+        h = self._history
+        h.append((t, mdot, T_cat))
+        td = t - self.dead_time
+        while len(h) > 2 and h[1][0] <= td:
+            h.pop(0)
+        if len(h) < 2 or td <= h[0][0]:
+            return h[0][1], h[0][2]
+        (t0, m0, T0), (t1, m1, T1) = h[0], h[1]
+        w = 0.0 if t1 <= t0 else min((td - t0) / (t1 - t0), 1.0)
+        return m0 + w * (m1 - m0), T0 + w * (T1 - T0)
 
-    def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
-        mdot, T_cat, lam_pre, lam_mid = self._checked(inputs)
+    def _observe(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
+        mdot, T_cat = float(inputs["EXH_MASS_FLOW"]), float(inputs["T_CAT"])
+        lam_pre, lam_mid = float(inputs["LAMBDA_PRE"]), float(inputs["LAMBDA_MID"])
+        if self.dead_time > 0:
+            mdot, T_cat = self._delayed(t, mdot, T_cat)
+        composition = self.lambda_lag == "composition"
+        k = self.kinetics
         core = self.core
         t_prev, u_prev = self._t, self._u
         a = 1.0
         if t_prev is not None and self.tau_lambda > 0 and 0 < t - t_prev <= self.max_gap:
             a = -math.expm1(-(t - t_prev) / self.tau_lambda)
         lam_in = lam_pre
-        pre_prev, self._pre_prev = self._pre_prev, lam_pre
-        if self.lead and a < 1.0 and pre_prev is not None:
-            lam_in = min(max(pre_prev + (lam_pre - pre_prev) / a, 0.5), 16.0)
+        pre_prev = self._pre_prev
+        if composition:
+            # the sensor's lagged (N, D) of eq. 12: undone to the feed gas's λ
+            if self.lead and a < 1.0 and pre_prev is not None:
+                lam_in, Np, Dp = undo_composition_lag(lam_pre, *pre_prev, a, k)
+            else:
+                Dp = carbon_share(lam_pre, k)
+                Np = lam_pre * Dp
+            self._pre_prev = (Np, Dp)
+        else:
+            self._pre_prev = lam_pre
+            if self.lead and a < 1.0 and pre_prev is not None:
+                lam_in = min(max(pre_prev + (lam_pre - pre_prev) / a, 0.5), 16.0)
         u = (mdot, T_cat, lam_in)
         self._t, self._u = t, u
         if t_prev is not None and t > t_prev:
@@ -429,25 +579,39 @@ class TWCObserver(Block):
                 ticks = dt / self.max_gap
                 core.predict(F=np.eye(4), Q=core.Q * ticks)
             else:
-                op = Operating(u if self.input_at_end else u_prev, self.kinetics)
+                op = Operating(u if self.input_at_end else u_prev, k)
                 x_new, Phi = predict(core.x.tolist(), op, dt, self.max_step, self.osc_bounds)
                 core.predict(u_prev, F=np.array(Phi), f=lambda x, _u: np.array(x_new))
-        op = Operating(u, self.kinetics)
+        op = Operating(u, k)
         m = self._y_sensor if a < 1.0 else None
+        if m is not None and composition != isinstance(m, tuple):
+            m = None
 
-        def measure(xv: list[float]) -> tuple[float, float, np.ndarray]:
-            """λ_mid as the sensor shows it, on the measurement scale, and its gradient."""
+        def measure(xv: list[float]) -> tuple[Any, float, float, np.ndarray]:
+            """λ_mid as the sensor shows it (and the sensor's state), on the measurement
+            scale, and its gradient."""
             _, _, o2, co, g_o2, g_co = _cells(xv, op, True)
             C = op.carbon
+            if composition:
+                # the sensor lags the outlet's N = 2[O2] + 2C - [CO] and D = 2C (per mole)
+                c0 = op.c0
+                N, D = (2.0 * o2 + 2.0 * C - co) / c0, 2.0 * C / c0
+                if m is not None:
+                    N, D = m[0] + a * (N - m[0]), m[1] + a * (D - m[1])
+                y = N / D
+                sv, slope = scale(y)
+                slope *= (1.0 if m is None else a) / (D * c0)
+                return (N, D), y, sv, np.array([[slope * (2.0 * g_o2[j] - g_co[j])
+                                                 for j in range(4)]])
             g = (2.0 * o2 + 2.0 * C - co) / (2.0 * C)
             y = g if m is None else m + a * (g - m)
             sv, slope = scale(y)
             slope *= 1.0 if m is None else a
-            return y, sv, np.array([[slope * (g_o2[j] / C - g_co[j] / (2.0 * C)) for j in range(4)]])
+            return y, y, sv, np.array([[slope * (g_o2[j] / C - g_co[j] / (2.0 * C))
+                                        for j in range(4)]])
 
         x_prior = core.x.copy()
-        y_hat, s_hat, H = measure(x_prior.tolist())
-        self._y_sensor = y_hat
+        self._y_sensor, y_hat, s_hat, H = measure(x_prior.tolist())
         if max(lam_pre, lam_mid) > self.blank_lambda:
             self._blank_until = t + self.blank_hold
         if t < self._blank_until:
@@ -487,28 +651,18 @@ class TWCObserver(Block):
                     if np.max(np.abs(x_next - xi)) < 1e-6:
                         break
                     xi = x_next
-                    _, s_hat, H = measure(xi.tolist())
+                    _, _, s_hat, H = measure(xi.tolist())
                     if freeze:
                         H[0, 3] = 0.0
                 self.iterated += 1
                 h_lin = s_hat + float((H @ (x_prior - xi))[0])
             core.update([z], H=H, R=R, h=lambda x, v=h_lin: np.array([v]))
-        x = core.x
+        x, P = core.x, core.P
+        # the band of the mean φ: sqrt(1ᵀ P_φφ 1) / 3
+        sox_var = float(P[0, 0] + P[1, 1] + P[2, 2] + 2.0 * (P[0, 1] + P[0, 2] + P[1, 2])) / 9.0
         return {"SOX_EST": float(x[0] + x[1] + x[2]) / 3.0, "PHI_1_EST": float(x[0]),
                 "PHI_2_EST": float(x[1]), "PHI_3_EST": float(x[2]), "OSC_EST": float(x[3]),
-                "LAMBDA_MID_EST": y_hat}
-
-    def state(self) -> dict[str, Any]:
-        return {
-            "t": self._t,
-            "states": list(self.STATES),
-            **core_state(self.core),
-            "skipped_gaps": self.skipped_gaps,
-            "blanked": self.blanked,
-            "osc_frozen": self.frozen,
-            "innovations_limited": self.limited,
-            "iterated_updates": self.iterated,
-        }
+                "LAMBDA_MID_EST": y_hat, "SOX_EST_SD": math.sqrt(max(sox_var, 0.0))}
 
 
 def twc_observers(osc_init: float | None = None) -> list[TWCObserver]:

@@ -48,6 +48,7 @@ from cell.estimators.catalyst import DEFAULT_Q, Q4_DEFAULT, TWCObserver
 from cell.sim.lockstep import Lockstep
 from cell.plant.si_engine import SI_CYCLES
 from cell.plant.si_turbo import si_turbo
+from cell.plant.catalyst import catalyst_params
 from cell.plant.catalyst_model import TWCKinetics
 from cell.core.registry import Experiment
 from cell.runtime.scheduler import Runtime
@@ -79,7 +80,8 @@ class Recording:
 
 def record(osc_true: float = 1.0, duration: float | None = None, *, cycle: str = "ftp",
            seed: int = 0, osc_step: tuple[float, float] | None = None, osc_drift: float = 0.0,
-           progress: bool = False, runtime_blocks=()) -> Recording:
+           progress: bool = False, runtime_blocks=(), variant: dict | None = None,
+           signals: dict | None = None) -> Recording:
     """Run the si-turbo engine in lockstep with a runtime; record the observer's inputs and
     the truth at every MED tick.
 
@@ -94,11 +96,18 @@ def record(osc_true: float = 1.0, duration: float | None = None, *, cycle: str =
         runtime to the simulator as a frame, as ``testcell scenario`` sends it.
     runtime_blocks:
         Blocks to run inside the runtime as well (a test compares them with :func:`observe`).
+    variant:
+        The catalyst plant's variant options (:data:`cell.plant.catalyst.CATALYST_OPTIONS`
+        keys, e.g. ``{"lambda_sensor": "composition"}``; default: the cell's own plant).
+    signals:
+        A dict to fill with the observer's four signals at every plant step (10 ms) as
+        ``(times, values)``, the input of :func:`cell.design.catalyst.design`.
     """
     from tqdm import tqdm
 
     db = dbc_mod.load()
-    plant = si_turbo(cycle, seed, osc=osc_true, osc_drift=osc_drift, crank=False)
+    plant = si_turbo(cycle, seed, osc=osc_true, osc_drift=osc_drift, crank=False,
+                     catalyst=catalyst_params(variant) if variant else None)
     sim = Simulator(plant, db)
     rt = Runtime(db, list(runtime_blocks))
     duration = plant.duration if duration is None else float(duration)
@@ -121,14 +130,20 @@ def record(osc_true: float = 1.0, duration: float | None = None, *, cycle: str =
     loop = Lockstep(sim, rt, stride=stride, on_tick=on_tick)
     n = round(duration / sim.dt)
     per_s = round(1.0 / sim.dt)
+    raw: list[list[float]] = []
     with tqdm(total=round(duration), unit="s", desc=f"si-turbo {cycle} osc {osc_true:g}",
               disable=not progress) as bar:
         for k, _ in loop.steps(n):
+            if signals is not None:
+                raw.append([sim.t, *(plant[name] for name in INPUTS)])
             if step_at is not None and k == step_at:
                 for msg in scenario_frames(db, {"osc": osc_step[1]}, sim.t):
                     rt.outbox.append(msg)  # sent at the next exchange, like POST /scenario
             if (k + 1) % per_s == 0:
                 bar.update(1)
+    if signals is not None and raw:
+        r = np.array(raw)
+        signals.update({name: (r[:, 0], r[:, i + 1]) for i, name in enumerate(INPUTS)})
     a = np.array(rows, dtype=float).reshape(len(rows), len(names))
     cols = {name: a[:, i] for i, name in enumerate(names)}
     inputs = {k: cols[k] for k in INPUTS}
@@ -325,8 +340,8 @@ def case_grid(osc_inits, q4s, q4_init: float) -> list[tuple[str, float, float]]:
 
 def run(osc_inits=(0.5, 1.0, 1.5), q4s=(Q4_DEFAULT, 10 * Q4_DEFAULT), osc_true: float = 1.0,
         q4_init: float = 0.5, duration: float | None = None, seed: int = 0,
-        out: Path | None = None, progress: bool = False, kinetics: TWCKinetics | None = None
-        ) -> tuple[Recording, list[CaseResult], dict[str, Estimate]]:
+        out: Path | None = None, progress: bool = False, kinetics: TWCKinetics | None = None,
+        setup=None) -> tuple[Recording, list[CaseResult], dict[str, Estimate]]:
     """Record one drive, run every case over it, score them and (with ``out``) draw the
     figures. ``kinetics`` is the observers' model (default
     :data:`~cell.estimators.catalyst.MODEL_KINETICS`). Returns the recording, the results and the
@@ -339,7 +354,11 @@ def run(osc_inits=(0.5, 1.0, 1.5), q4s=(Q4_DEFAULT, 10 * Q4_DEFAULT), osc_true: 
     done: dict[tuple[float, float], Estimate] = {}  # one observer per (initial OSC, Q4)
     for _, g, q in tqdm(todo, unit="case", desc="observers", disable=not progress):
         if (g, q) not in done:
-            done[(g, q)] = observe(rec, osc_init=g, Q=(*DEFAULT_Q[:3], q), kinetics=kinetics)
+            ob = TWCObserver("twc", osc_init=g, Q=(*DEFAULT_Q[:3], q), kinetics=kinetics)
+            if setup is not None:
+                setup(ob)
+                ob.set_params({"osc_init": g, "Q": [*DEFAULT_Q[:3], q]})
+            done[(g, q)] = observe(rec, ob)
     estimates = {name: done[(g, q)] for name, g, q in todo}
     results = [score(rec, done[(g, q)], name, g, q, naive) for name, g, q in todo]
     if out is not None:
@@ -422,7 +441,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the observer model's kinetics as factors of the plant's, e.g. "
                              "A1=0.8,A2=1.2,y_c=1.03 (default: the shipped model, "
                              "A1=0.9,A2=1.1,y_c=1.02; A1=1 for no mismatch)")
+    parser.add_argument("--design", action="append", dest="designs", default=None,
+                        metavar="FILE", help="load a design of twc (testcell design twc) into "
+                                             "every case's observer (repeatable)")
+    parser.add_argument("--state", default=None, metavar="FILE",
+                        help="apply the twc parameters of a tuning file as testcell up writes it")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def configured(designs=(), state: str | None = None):
+    """A function that loads the designs and the tuning file's ``observers.twc`` parameters
+    into an observer (checked once here: a bad file raises :class:`ConfigError`)."""
+    from cell.estimators.contract import read_design
+
+    loaded = [(str(p), read_design(p)) for p in designs or ()]
+    params: dict[str, Any] = {}
+    if state is not None:
+        try:
+            data = json.loads(Path(state).read_text())
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"--state {state}: not a readable tuning file: {exc}") from None
+        entry = data.get("observers", {}).get("twc", {}) if isinstance(data, dict) else None
+        if not isinstance(entry, dict):
+            raise ConfigError(f"--state {state}: observers.twc must be an object")
+        params = {k: v for k, v in entry.items() if k not in TWCObserver.VOLATILE}
+
+    def apply(ob: TWCObserver) -> TWCObserver:
+        for source, d in loaded:
+            ob.load_design(d, source)
+        if params:
+            ob.set_params(params)
+        return ob
+
+    apply(TWCObserver("twc"))  # refuse a bad file before any work
+    return apply
 
 
 def main(args: argparse.Namespace) -> int:
@@ -436,9 +488,10 @@ def main(args: argparse.Namespace) -> int:
     if "ftp" not in SI_CYCLES:  # pragma: no cover - the cycle is the cell's own
         raise ConfigError("the ftp duty cycle is missing")
     kinetics = parse_mismatch(args.mismatch) if args.mismatch else None
+    setup = configured(args.designs, args.state)
     out = Path(args.out)
     _, results, _ = run(inits, q4s, args.osc_true, args.q4_init, args.duration, args.seed, out,
-                        progress=not args.quiet, kinetics=kinetics)
+                        progress=not args.quiet, kinetics=kinetics, setup=setup)
     table = sys.stderr if args.json else sys.stdout
     print(format_results(results), file=table)
     print(f"figures and twc_cases.json in {out}/", file=table)
@@ -451,3 +504,68 @@ def main(args: argparse.Namespace) -> int:
 TWC = Experiment("twc", "dual EKF of the catalyst's SOX and OSC on the FTP-like cycle",
                  add_arguments, main, seed="seed 000, Figures 4-6",
                  description=__doc__.split("\n\n")[0] if __doc__ else "")
+
+
+# -- robustness over plant variants ----------------------------------------------------------------
+ROBUSTNESS_CASES = ("fresh", "aged", "osc_step")
+#: Acceptance (issue 18): convergence within this for fresh and aged, following a step within
+#: ``STEP_WITHIN`` s.
+CONVERGE_WITHIN = 700.0
+STEP_WITHIN = 400.0
+
+
+def robustness_case(variant: dict, case: str, seed: int, short: bool) -> dict[str, Any]:
+    """One catalyst case on a plant variant: design from one log of the variant (fresh
+    catalyst, noise seed ``seed``), evaluate on another run of the FTP-like cycle with noise
+    seed ``seed + 1`` and another length (the cycle itself is the cell's one drive).
+
+    ``case``: ``fresh`` (OSC 1), ``aged`` (OSC 0.6, from the fresh guess) or ``osc_step``
+    (1.0 → 0.5 mid-run). ``short`` runs the shortest cycles that still prove the point
+    (the design on 700 s, the evaluation on 900 s; the full runs are 1800 s). Returns
+    ``{"passed", "metrics", "reason"}``: passed when OSC_EST stays within ±10 % of the truth
+    from ≤ 700 s (fresh, aged), or within 400 s of the step.
+    """
+    from cell.design.catalyst import design
+
+    if case not in ROBUSTNESS_CASES:
+        raise ConfigError(f"case {case!r}: choose one of {', '.join(ROBUSTNESS_CASES)}")
+    design_s, eval_s = (700.0, 900.0) if short else (1800.0, 1800.0)
+    step_at = 0.5 * eval_s if case == "osc_step" else None
+    signals: dict = {}
+    record(1.0, design_s, seed=seed, variant=variant, signals=signals)
+    try:
+        d = design(signals, 1.0, source=f"variant {variant} seed {seed}")
+    except ConfigError as exc:
+        return {"passed": False, "metrics": {}, "reason": f"design refused: {exc}"}
+    osc_true = 0.6 if case == "aged" else 1.0
+    rec = record(osc_true, eval_s, seed=seed + 1, variant=variant,
+                 osc_step=None if step_at is None else (step_at, 0.5))
+    ob = TWCObserver("twc", osc_init=1.0)
+    ob.load_design(d, "robustness design")
+    est = observe(rec, ob)
+    t, truth = rec.t, rec.truth["OSC_TRUE"]
+    osc = np.where(np.isfinite(est.osc), est.osc, 1.0)
+    warm = rec.inputs["T_CAT"] >= WARM
+    metrics: dict[str, Any] = {"identified": d["identified"], "design_rmse_held_out":
+                               d["fit"]["rmse_held_out"], "osc_final": float(osc[-1]),
+                               "osc_true": float(truth[-1]),
+                               "sox_rmse": rmse(est.sox, rec.truth["SOX_TRUE"], warm)}
+    if step_at is None:
+        tc = convergence_time(t, osc, truth)
+        metrics["convergence_s"] = tc
+        passed = tc is not None and tc <= CONVERGE_WITHIN
+        reason = (f"OSC_EST within ±10 % of {truth[-1]:g} from {tc:.0f} s" if tc is not None
+                  else f"OSC_EST ends outside ±10 % ({osc[-1]:.3f} against {truth[-1]:g})")
+        limit = CONVERGE_WITHIN
+    else:
+        after = t > step_at
+        tc = convergence_time(t[after], osc[after], truth[after])
+        follow = None if tc is None else tc - step_at
+        metrics["follow_s"] = follow
+        passed = follow is not None and follow <= STEP_WITHIN
+        reason = (f"followed the step to 0.5 within {follow:.0f} s" if follow is not None
+                  else f"OSC_EST ends outside ±10 % after the step ({osc[-1]:.3f})")
+        limit = STEP_WITHIN
+    if not passed and tc is not None:
+        reason += f" (goal ≤ {limit:.0f} s)"
+    return {"passed": bool(passed), "metrics": metrics, "reason": reason}

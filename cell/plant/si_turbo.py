@@ -39,7 +39,7 @@ from cell.core.errors import ConfigError
 from cell.core.options import Option
 from cell.core.registry import Run
 from cell.plant.base import Plant
-from cell.plant.catalyst import Catalyst, CatalystParams
+from cell.plant.catalyst import CATALYST_OPTIONS, Catalyst, CatalystParams, catalyst_params
 from cell.plant.composition import Composition
 from cell.plant.cylinders import (VARIANT_OPTIONS, CylinderParams, Cylinders, parse_imbalance,
                                   variant_params)
@@ -105,6 +105,7 @@ def _build(s: Run) -> Composition:
         raise ConfigError(f"--duty {duty!r} is not a duty cycle of {ENGINE_NAME}; choose one of: "
                           f"{', '.join(SI_CYCLES)}")
     return si_turbo(duty, s.seed, osc=s.plant.get("osc"), osc_drift=s.plant.get("osc_drift"),
+                    catalyst=catalyst_params(s.plant),
                     imbalance=s.plant.get("imbalance"), crank=s.plant.get("crank", "on") == "on",
                     cylinders=variant_params(s.plant))
 
@@ -150,5 +151,6 @@ SI_TURBO = registry.EngineProfile(
                help="the crank-resolved cylinders, UEGO and crankshaft plant with its 6 deg "
                     "sample frames (default on)"),
         *VARIANT_OPTIONS,
+        *CATALYST_OPTIONS,  # the catalyst's variants: λ sensor model, kinetics, cells
     ),
 )

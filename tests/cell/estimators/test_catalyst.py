@@ -3,6 +3,7 @@ its place in the runtime and the service."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -88,7 +89,10 @@ def test_states_stay_bounded_and_outputs_are_named():
         np.testing.assert_allclose(P, P.T, atol=0)
         assert np.linalg.eigvalsh(P).min() > 0.0
     assert set(out) == {"SOX_EST", "PHI_1_EST", "PHI_2_EST", "PHI_3_EST", "OSC_EST",
-                        "LAMBDA_MID_EST"}
+                        "LAMBDA_MID_EST", "TWC_CONF", "OSC_EST_SD", "SOX_EST_SD"}
+    # the bands come from P: OSC's own variance, and that of the mean of the three φ
+    assert out["OSC_EST_SD"] == pytest.approx(math.sqrt(P[3, 3]))
+    assert out["SOX_EST_SD"] == pytest.approx(math.sqrt(np.ones(3) @ P[:3, :3] @ np.ones(3)) / 3)
     assert out["SOX_EST"] == pytest.approx((out["PHI_1_EST"] + out["PHI_2_EST"]
                                             + out["PHI_3_EST"]) / 3)
 
@@ -96,9 +100,9 @@ def test_states_stay_bounded_and_outputs_are_named():
 @pytest.mark.parametrize("channel,value,needle", [
     ("LAMBDA_PRE", math.nan, "input LAMBDA_PRE is nan"),
     ("EXH_MASS_FLOW", math.inf, "input EXH_MASS_FLOW is inf"),
-    ("LAMBDA_MID", 0.2, "LAMBDA_MID = 0.2 is outside its plausible range [0.5, 16]"),
-    ("T_CAT", 2000.0, "T_CAT = 2000 is outside its plausible range [-50, 1200]"),
-    ("EXH_MASS_FLOW", -0.01, "EXH_MASS_FLOW = -0.01 is outside"),
+    ("LAMBDA_MID", 0.2, "LAMBDA_MID = 0.2 outside its plausible range [0.5, 16]"),
+    ("T_CAT", 2000.0, "T_CAT = 2000 outside its plausible range [-50, 1200]"),
+    ("EXH_MASS_FLOW", -0.01, "EXH_MASS_FLOW = -0.01 outside"),
 ])
 def test_bad_inputs_are_refused_and_the_state_is_kept(channel, value, needle):
     ob = TWCObserver()
@@ -223,7 +227,7 @@ def test_out_of_range_frame_marks_outputs_invalid_and_keeps_the_state():
     rt.ingest(bad)
     rt.advance(3.1)
     status, reason = rt.channel("OSC_EST").status_at(3.1)
-    assert status == "invalid" and "LAMBDA_PRE = 16.3837 is outside" in reason
+    assert status == "invalid" and "LAMBDA_PRE = 16.3837 outside" in reason
     np.testing.assert_array_equal(block.core.x, x)
 
 
@@ -262,3 +266,87 @@ def test_osc_init_is_a_setting_of_up_and_replay(tmp_path):
     parser = cli.build_parser()
     args = parser.parse_args(["replay", "x.log", "--out", "x.csv", "--osc-init", "0.8"])
     assert Settings.from_args(args, environ={}).blocks["osc_init"] == 0.8
+
+
+# -- the sensor model and designs (issue 18) ---------------------------------------------------
+def test_undoing_the_composition_lag_recovers_the_feed_lambda():
+    from cell.estimators.catalyst import undo_composition_lag
+    from cell.plant.catalyst_model import feed_gas
+
+    k = MODEL_KINETICS
+    a = 1.0 - math.exp(-0.1 / 0.1)
+    feed = [10.0, 10.0, 0.93, 0.93, 0.95, 1.02, 1.3, 4.0, 0.97]
+    # the sensor, written plainly: each species' mole fraction lagged, λ of eq. 12 of the mix
+    o2, co, c = feed_gas(feed[0], 1.0, k)
+    lagged = [o2, co, c]
+    m_prev = None
+    state = None
+    for lam in feed[1:]:
+        g = feed_gas(lam, 1.0, k)
+        lagged = [v + a * (w - v) for v, w in zip(lagged, g)]
+        o2, co, c = lagged
+        m = (2.0 * (o2 + c - co) + co) / (2.0 * c)
+        if state is None:
+            D = 2.0 * feed_gas(feed[0], 1.0, k)[2]
+            state = (feed[0] * D, D)
+        got, *state = undo_composition_lag(m, *state, a, k)
+        assert got == pytest.approx(lam, rel=1e-9)
+        m_prev = m
+    assert m_prev is not None
+
+
+def test_a_design_round_trips_and_a_bad_one_keeps_the_previous():
+    from cell.estimators.contract import DesignError
+
+    ob = TWCObserver()
+    d = {"observer": "twc", "identified": {"lambda_lag": "composition", "tau_lambda": 0.15,
+                                           "dead_time": 0.03, "kinetics_scale": 1.4}}
+    ob.load_design(d, "test")
+    assert ob.sensor_model() == {"lambda_lag": "composition", "tau_lambda": 0.15,
+                                 "dead_time": 0.03, "kinetics_scale": 1.4}
+    assert ob.kinetics.A1 == pytest.approx(1.4 * MODEL_KINETICS.A1)
+    other = TWCObserver()
+    other.load_design(ob.design(), "round trip")
+    assert other.sensor_model() == ob.sensor_model()
+    for bad, needle in (({"identified": {"lambda_lag": "voltage"}}, "identified.lambda_lag"),
+                        ({"identified": {"tau_lambda": -1}}, "identified.tau_lambda"),
+                        ({"identified": {"colour": 1}}, "identified.colour: unknown"),
+                        ({"observer": "airpath"}, "names observer 'airpath'")):
+        with pytest.raises(DesignError, match=re_escape(needle)):
+            ob.load_design({"observer": "twc", **bad}, "bad")
+        assert ob.sensor_model()["tau_lambda"] == 0.15
+
+
+def test_put_design_loads_live_and_refuses_a_bad_one_with_422(tmp_path):
+    db = load()
+    rt = Runtime(db, [TWCObserver()])
+    rt.ingest_many(frames(db, 0.0, 1.0))
+    rt.advance(1.0)
+    client = local_client(create_app(Cell(runtime=rt)))
+    r = client.put("/observers/twc/design", json={"observer": "twc",
+                                                  "identified": {"tau_lambda": 0.2}})
+    assert r.status_code == 200 and r.json()["state"]["sensor_model"]["tau_lambda"] == 0.2
+    r = client.put("/observers/twc/design", json={"observer": "twc",
+                                                  "identified": {"tau_lambda": "slow"}})
+    assert r.status_code == 422 and "identified.tau_lambda" in r.json()["detail"]
+    r = client.put("/observers/twc/design", json={"observer": "other"})
+    assert r.status_code == 422 and "names observer 'other'" in r.json()["detail"]
+    assert client.get("/observers/twc").json()["state"]["sensor_model"]["tau_lambda"] == 0.2
+    assert client.put("/observers/nope/design", json={"observer": "nope"}).status_code == 422
+
+
+def test_design_and_state_files_on_replay(tmp_path):
+    from cell.app.assemble import build_runtime
+
+    good = tmp_path / "twc.json"
+    good.write_text(json.dumps({"observer": "twc", "identified": {"lambda_lag": "composition"}}))
+    state = tmp_path / "tuning.json"
+    state.write_text(json.dumps({"observers": {"twc": {"R": [3e-4]}}}))
+    rt, _ = build_runtime(Settings.build({"engine": "si-turbo", "designs": (str(good),),
+                                          "state": state}, environ={}))
+    assert rt.blocks["twc"].lambda_lag == "composition" and rt.blocks["twc"].R[0] == 3e-4
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"observer": "catalyst-x"}))
+    code = cli.main(["replay", str(tmp_path / "none.log"), "--out", str(tmp_path / "o.csv"),
+                     "--engine", "si-turbo", "--design", str(bad)])
+    assert code == 2 and not (tmp_path / "o.csv").exists()

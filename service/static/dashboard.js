@@ -140,10 +140,12 @@ function filterPanels(blocks) {
 }
 
 function controllerPanels(controllers) {
-  // each controller: feedback and valve position (its inputs), demand (its outputs), setpoint
+  // each controller: feedback and valve position (its inputs), demand (its outputs), setpoint;
+  // not its interlock (the engine's state, a number with no unit), which its mode reports
   for (const c of controllers) {
     const fb = c.params.feedback || c.inputs[0];
-    const traces = [...new Set([fb, ...c.inputs, ...c.outputs])].map(n => ({name: n, unit: unitOf(n)}));
+    const plotted = [fb, ...c.inputs, ...c.outputs].filter(n => n !== c.params.interlock);
+    const traces = [...new Set(plotted)].map(n => ({name: n, unit: unitOf(n)}));
     const hl = c.params.setpoint === undefined ? [] : [{label: "setpoint", unit: unitOf(fb),
       value: () => { const b = blocksOf("controller").find(x => x.name === c.name); return b ? b.params.setpoint : NaN; }}];
     addPlot(`controller-${c.name}`, `controller ${c.name} (${c.kind})`, traces, hl);

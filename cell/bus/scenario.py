@@ -156,7 +156,9 @@ def describe_frames(db: CellDatabase, frames: Sequence[can.Message]) -> list[dic
     out = []
     for msg in frames:
         message, values = db.decode(msg)
-        out.append({"message": message.name, "frame_id": message.frame_id, "signals": values})
+        given = db.payload_signals(message)  # not the E2E counter and CRC
+        out.append({"message": message.name, "frame_id": message.frame_id,
+                    "signals": {k: values[k] for k in given}})
     return out
 
 

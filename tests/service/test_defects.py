@@ -9,7 +9,6 @@
 """
 
 
-import can
 from fastapi.testclient import TestClient
 
 from cell.bus.scenario import scenario_frames

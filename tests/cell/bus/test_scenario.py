@@ -54,8 +54,9 @@ def test_a_command_sets_the_given_keys_and_the_start_value_of_the_others(db):
 
 
 @pytest.mark.parametrize("values,field,needle", [
-    ({"osk": 0.5}, "osk", "is not a scenario key; known: engine_reset_confirm, engine_reset_req, fuel_offset_cyl_1, fuel_offset_cyl_2, "
-     "fuel_offset_cyl_3, fuel_offset_cyl_4, osc, rig_gain, rig_level, rig_mode"),
+    ({"osk": 0.5}, "osk", "is not a scenario key; known: engine_reset_confirm, engine_reset_req, "
+     "fuel_offset_cyl_1, fuel_offset_cyl_2, fuel_offset_cyl_3, fuel_offset_cyl_4, osc, rig_gain, "
+     "rig_level, rig_mode"),
     ({"osc": 2.5}, "osc", "must be within [0.05, 2] (the DBC range of OSC in SCENARIO_TWC), got 2.5"),
     ({"osc": 0.01}, "osc", "must be within [0.05, 2]"),
     ({"rig_level": -1}, "rig_level", "must be within [0, 100] %"),
@@ -97,7 +98,8 @@ def test_the_cli_refuses_an_unknown_key_or_a_value_out_of_range(capsys):
     peer = open_bus(channel)
     try:
         assert cli.main(["scenario", "osk=0.5", "--bus", channel]) == 2
-        assert "osk: is not a scenario key; known: engine_reset_confirm, engine_reset_req, fuel_offset_cyl_1" in capsys.readouterr().err
+        assert ("osk: is not a scenario key; known: engine_reset_confirm, engine_reset_req, "
+                "fuel_offset_cyl_1") in capsys.readouterr().err
         assert cli.main(["scenario", "osc=9", "--bus", channel]) == 2
         assert "osc: must be within [0.05, 2]" in capsys.readouterr().err
         assert peer.recv(timeout=0.2) is None  # nothing was sent

@@ -66,7 +66,7 @@ def closed_loop(db):
     engine = sim.plant.plant("engine")
     rec = []
     off_at, on_at = 8.0, 11.0
-    for k, _ in Lockstep(sim, rt).steps(round(13.0 / sim.dt)):
+    for _k, _ in Lockstep(sim, rt).steps(round(13.0 / sim.dt)):
         t = sim.t
         if abs(t - off_at) < 1e-9 or abs(t - on_at) < 1e-9:
             for c in ctrls:

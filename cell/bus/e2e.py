@@ -38,6 +38,7 @@ COUNTER_MAX = 14
 REASONS = ("crc", "repeated", "skipped", "too_old")
 #: Age allowed to a protected message without a cycle time, s.
 EVENT_MAX_AGE = 0.1
+_AGE_TOLERANCE = 1e-6  # bus times are sums of steps: exactly one cycle old is not too old
 
 
 class _Crc8Profile1(Crc8Base):
@@ -170,7 +171,7 @@ class Receiver:
     def _reason(self, spec: E2ESpec, data: bytes, counter: int, age: float) -> str | None:
         if counter > COUNTER_MAX or data[spec.crc_byte] != spec.crc_of(data):
             return "crc"
-        if age > spec.max_age:
+        if age > spec.max_age + _AGE_TOLERANCE:
             return "too_old"
         last = self.last.get(spec.message)
         if last is not None:

@@ -392,7 +392,7 @@ class DieselEngine(Plant):
         if self.state == RUNNING and u.get("ENGINE_STATE", RUNNING) != RUNNING:
             self.state = int(u["ENGINE_STATE"])  # tripped: stays down until reset
         elif self.state == TRIPPED and u.get("ENGINE_STATE") == RUNNING:
-            self.state = RUNNING  # the trip was reset (ENGINE_RESET): restart and follow the cycle
+            self.state = RUNNING  # the trip was reset (ENGINE_CMD): restart and follow the cycle
         if self.state == RUNNING:
             sp_speed, sp_load = (self.params.idle_speed, 0.0) if self.safe \
                 else self.schedule.setpoint(t)

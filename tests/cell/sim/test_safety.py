@@ -4,18 +4,23 @@ has cleared, and counts what it cannot decode. All on bus time, in lockstep: no 
 
 from __future__ import annotations
 
+import os
+
 import can
 import pytest
 
 from cell.bus.dbc import CellDatabase
+from cell.core.errors import ConfigError
+from cell.core.settings import Settings
 from cell.experiments.backpressure import case_cell, rated_hold
 from cell.plant import TRIPPED
 from cell.plant.backpressure import (RESET_DONE, RESET_PENDING, RESET_REFUSED_BAD_FRAME,
                                      RESET_REFUSED_CAUSE, RESET_REFUSED_NO_REQUEST, RUNNING)
 from cell.plant.diesel import EngineParams
 from cell.plant.large_diesel import large_diesel
+from cell.sim import ParentWatch, build
 from cell.sim.lockstep import Lockstep
-from cell.sim.simulator import SAFE_DEMAND_TIMEOUT, SAFE_NONE, Simulator
+from cell.sim.simulator import SAFE_DEMAND_TIMEOUT, SAFE_NONE, SAFE_PARENT_LOST, Simulator
 
 IDLE = EngineParams().idle_speed
 
@@ -237,3 +242,38 @@ def test_a_trip_clears_only_by_request_then_confirm_once_its_cause_cleared(db):
     steps(sim, 0.01)
     assert banks.state == RUNNING and banks.reset_state == RESET_DONE
     assert sim.plant.signals["RESET_STATE"] == RESET_DONE
+
+
+def test_the_watchdog_timeout_is_configurable_and_refuses_nonsense(db):
+    sim = Simulator(at_rated(60.0), db, demand_timeout_cycles=5)
+    banks = sim.plant.plant("exhaust")
+
+    def demand():
+        if sim.k % 10 == 0 and sim.t < 1.0 - 1e-9:
+            assert sim.receive(stamped(db, sim, {"VALVE_DEMAND_L": 70.0, "VALVE_DEMAND_R": 70.0}))
+    last = 0.9  # the last demand
+    safe_at = None
+    for _ in range(200):
+        demand()
+        sim.frames()
+        sim.step()
+        if safe_at is None and sim.safe_state == SAFE_DEMAND_TIMEOUT:
+            safe_at = sim.t
+    assert last + 0.5 < safe_at <= last + 0.5 + 0.02 and banks.valves["L"].demand == 100.0
+    for bad in (0, -1, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="--demand-timeout-cycles must be a number > 0"):
+            Simulator(at_rated(60.0), db, demand_timeout_cycles=bad)
+    with pytest.raises(ConfigError, match="--demand-timeout-cycles"):
+        Settings.build({"demand_timeout_cycles": 0.0}, environ={}).check()
+    built = build(Settings.build({"demand_timeout_cycles": 7.0}, environ={}), db)
+    assert built.watched["VALVE_DEMAND"][0] == pytest.approx(0.7)
+
+
+def test_the_parent_watch_sees_a_parent_that_is_not_ours_any_more():
+    assert not ParentWatch().lost()  # pytest's parent is alive
+    assert ParentWatch(parent_pid=os.getpid()).lost()  # we are not our own parent
+    sim = Simulator(at_rated(60.0), CellDatabase())
+    sim.parent_lost()
+    assert sim.safe_state == SAFE_PARENT_LOST and sim.plant.plant("exhaust").safe
+    sim.watchdog()
+    assert sim.safe_state == SAFE_PARENT_LOST  # for good

@@ -48,6 +48,12 @@ class HealthOut(BaseModel):
     late_frames: int
     block_errors: dict[str, int]
     withheld: dict[str, int]
+    implausible: dict[str, int] = Field(
+        default_factory=dict, description="decoded bus values outside their signal's range or "
+                                          "rate limit, by signal (they are invalid)")
+    unsaved: list[str] = Field(
+        default_factory=list, description="changes applied but not saved (a controller switched "
+                                          "off while the tuning file could not be written)")
     tick_overruns: int = Field(0, description="ticks whose work took longer than the period of "
                                               "the fastest task in them (also in /metrics)")
     last_frame_time: float | None
@@ -70,6 +76,12 @@ class BlockOut(BaseModel):
     outputs: list[str]
     params: dict[str, Any]
     state: dict[str, Any]
+
+
+class TunedOut(BlockOut):
+    """A block after a ``PATCH``, with what did not go as asked (applied but not saved)."""
+
+    warnings: list[str] = []
 
 
 class FamilyOut(BaseModel):

@@ -8,6 +8,7 @@ from pathlib import Path
 from cell.bus.dbc import load
 from cell.core import registry
 from cell.core.settings import Settings
+from cell.runtime.plausibility import read_file
 from cell.runtime.scheduler import Rates, Runtime
 from cell.scripts.manager import ScriptManager
 
@@ -22,6 +23,8 @@ def build_runtime(settings: Settings, store=None):
     frames they read, the shipped ones."""
     db = load([*registry.DBC_FILES, *settings.dbc])
     rt = Runtime(db, rates=Rates.parse(settings.cycle))
+    if settings.plausibility is not None:
+        rt.plausibility.override(read_file(settings.plausibility))
     if not settings.scripts or settings.native:
         for block_set in registry.BLOCK_SETS.values():
             if block_set.applies_to(settings.engine):

@@ -9,8 +9,9 @@ the runtime's lock itself, so the service never holds the lock nor reads the run
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import can
@@ -25,6 +26,8 @@ from cell.runtime.blocks import Block
 from cell.runtime.scheduler import Runtime
 from cell.runtime.store import Reading
 from cell.scripts.manager import ScriptManager
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -42,6 +45,9 @@ class Cell:
     scripts: ScriptManager | None = None
     tuning: TuningStore | None = None
     live: LiveCell | None = None
+    #: block -> what was applied but could not be saved (a safety action on a full or
+    #: read-only disk), shown in :meth:`health` until the next save succeeds
+    unsaved: dict[str, str] = field(default_factory=dict)
 
     # -- bus time ---------------------------------------------------------------------
     @property
@@ -135,19 +141,33 @@ class Cell:
         with self.runtime.lock:
             return [self.runtime.block(n).describe() for n in self.names(family)]
 
-    def tune(self, family: str, name: str, changes: dict[str, Any]) -> dict[str, Any]:
-        """Apply a parameter change to a block of ``family`` and save it; all or nothing."""
+    def tune(self, family: str, name: str, changes: dict[str, Any],
+             warnings: list[str] | None = None) -> dict[str, Any]:
+        """Apply a parameter change to a block of ``family`` and save it; all or nothing.
+
+        A safety action (:meth:`~cell.runtime.blocks.Block.safe_unsaved`: a controller
+        switched off) never depends on the disk: when the tuning file cannot be written it
+        stays applied, the failure is logged, shown in :meth:`health` and appended to
+        ``warnings``. Any other change is undone and the error raised."""
         rt = self.runtime
         with rt.lock:
             block = rt.block(name, family)
             before = block.params()
-            params = block.set_params(changes)
+            params = rt.set_params(name, changes, family)
             if self.tuning is not None:
                 try:
                     self.tuning.record(registry.FAMILIES[family].section, name, params)
-                except Exception:
-                    block.set_params(before)
-                    raise
+                except Exception as exc:
+                    if not block.safe_unsaved(changes):
+                        block.set_params(before)
+                        raise
+                    text = f"{family} {name}: {changes} applied but not saved: {exc}"
+                    log.warning("%s", text)
+                    self.unsaved[name] = text
+                    if warnings is not None:
+                        warnings.append(text)
+                else:
+                    self.unsaved.clear()  # the whole file is written: nothing left unsaved
             return params
 
     # -- commands to the bus ----------------------------------------------------------
@@ -192,7 +212,11 @@ class Cell:
         rt = self.runtime
         with rt.lock:
             counts = rt.health()
-            return {**supervision.assess(rt, self.live), "bus": self.bus,
+            assessed = supervision.assess(rt, self.live)
+            if self.unsaved and assessed["status"] != supervision.WAITING:
+                assessed["status"] = supervision.DEGRADED
+            assessed["reasons"] += list(self.unsaved.values())
+            return {**assessed, "bus": self.bus, "unsaved": list(self.unsaved.values()),
                     "runtime_running": self.live.running if self.live else False, **counts}
 
     def frames_by_id(self) -> dict[tuple[int, bool], int]:

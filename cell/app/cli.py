@@ -68,6 +68,9 @@ def add_runtime_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dbc", action="append", default=None, metavar="PATH",
                    help="add a DBC file, or a folder of them, to the cell's own dbc/*.dbc "
                         "(repeatable): your ECU and DAQ frames decode into channels")
+    p.add_argument("--plausibility", type=Path, default=None, metavar="FILE",
+                   help="YAML or JSON list of {signal, min, max, rate}: ranges and rate limits "
+                        "(units/s) over the DBC's; a value outside them is invalid")
     add_block_options(p)  # the block sets' own: --osc-init, --bias-design, --no-controllers
 
 

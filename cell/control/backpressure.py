@@ -27,10 +27,12 @@ followed by the output limits and the rate limit. ``kp`` is in % per mmH2O and `
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, ClassVar
 
-from cell.core.errors import ParamError
+from cell.bus.dbc import load
+from cell.core.errors import ConfigError, ParamError
 from cell.core.options import Option, parse_bool
 from cell.core.registry import BlockSet
 from cell.runtime.blocks import Block, Param
@@ -45,6 +47,24 @@ FEEDBACK = {
     "kalman": "EXH_BP_{bank}_Kalman",
     "adaptive": "EXH_BP_{bank}_Adaptive",
 }
+
+#: The valve opening that lowers the back-pressure most: fully open, %.
+SAFE_OUTPUT = 100.0
+#: Seconds a controller holds its last output while its feedback is bad, then goes safe.
+HOLD_S = 1.0
+#: The channel that says whether the engine runs (DBC ``ENGINE_STATUS``).
+INTERLOCK = "ENGINE_STATE"
+
+
+@functools.cache
+def running_code(signal: str = INTERLOCK, name: str = "RUNNING") -> int:
+    """The value of ``signal`` that the cell's DBC names ``name`` (``VAL_`` table)."""
+    sig = load().message_for(signal).get_signal_by_name(signal)
+    for value, label in (sig.choices or {}).items():
+        if str(label) == name:
+            return int(value)
+    raise ConfigError(f"the DBC names no value of {signal} {name!r}")
+
 
 #: Default gains; see :class:`PIController` for the reasoning.
 DEFAULT_KP = 0.005
@@ -99,6 +119,18 @@ class PIController(Block):
         ``VALVE_POS_<bank>``); ``""`` holds ``manual`` instead.
     manual:
         Opening held while disabled when ``track`` is empty, % (seed 004 starts 100 % open).
+    safe_output:
+        Opening while the engine is not running and after the feedback has been bad for
+        ``hold_s``, % (default 100: fully open, which lowers the back-pressure most).
+    hold_s:
+        Seconds the last output is held, integrator frozen, while the feedback (or another
+        input) is invalid or stale, before going to ``safe_output`` (default 1).
+    interlock, running_state:
+        The channel that says whether the engine runs (default ``ENGINE_STATE``; ``""``:
+        none) and its value while it runs (default: the DBC's ``RUNNING``). Any other value
+        (tripped, stopped) puts the output at ``safe_output`` with the integrator reset to
+        it, so there is no wind-up during a trip: after the reset the loop starts from the
+        open valve, bumplessly.
     rate:
         Runtime task, default ``MED`` (10 Hz, the rate of seed 004's filters).
 
@@ -143,9 +175,18 @@ class PIController(Block):
                             ge=0.0, le=1000.0),
         "manual": Param("manual", float, "opening held while disabled without track, %",
                         ge=0.0, le=100.0),
+        "safe_output": Param("safe_output", float, "opening while the engine is not running, or "
+                             "the feedback is bad for longer than hold_s, % (100: fully open, "
+                             "the lowest back-pressure)", ge=0.0, le=100.0),
+        "hold_s": Param("hold_s", float, "how long the last output is held while the feedback "
+                        "is invalid or stale before going to safe_output, s", ge=0.0, le=60.0),
+        "running_state": Param("running_state", int, "value of the interlock channel while the "
+                               "engine runs (DBC: ENGINE_STATE = RUNNING)", ge=0, le=255),
     }
     #: parameters that are not numbers; checked in :meth:`validate`
-    TEXT_PARAMS: ClassVar[tuple[str, ...]] = ("feedback", "track", "antiwindup")
+    TEXT_PARAMS: ClassVar[tuple[str, ...]] = ("feedback", "track", "interlock", "antiwindup")
+    #: the channel parameters and the unit each channel must have (the runtime checks them)
+    CHANNEL_PARAMS: ClassVar[dict[str, str]] = {"feedback": "mmH2O", "track": "%", "interlock": ""}
     FLAG_PARAMS: ClassVar[tuple[str, ...]] = ("enable",)
 
     def __init__(
@@ -165,6 +206,10 @@ class PIController(Block):
         enable: bool = False,
         track: str | None = None,
         manual: float = 100.0,
+        safe_output: float = SAFE_OUTPUT,
+        hold_s: float = HOLD_S,
+        interlock: str = INTERLOCK,
+        running_state: int | None = None,
         rate: str = "MED",
     ) -> None:
         if bank not in ("L", "R"):
@@ -177,8 +222,13 @@ class PIController(Block):
         self.feedback = f"EXH_BP_{bank}_Kalman"
         self.track = f"VALVE_POS_{bank}"
         self.antiwindup = "clamp"
+        self.interlock = INTERLOCK
         self.enable = False
         self._starting = False
+        #: what the output follows: ``manual``, ``auto``, or why it holds or is safe
+        self.mode = "manual"
+        #: bus time since which the feedback has been bad (``None``: it is ok)
+        self._bad_since: float | None = None
         #: last output, %; None before the first tick
         self.u: float | None = None
         for key in self.PARAMS:
@@ -189,7 +239,9 @@ class PIController(Block):
             "track": track if track is not None else f"VALVE_POS_{bank}",
             "antiwindup": antiwindup, "enable": enable, "setpoint": setpoint, "kp": kp,
             "ki": ki, "kt": kt, "out_min": out_min, "out_max": out_max,
-            "rate_limit": rate_limit, "manual": manual,
+            "rate_limit": rate_limit, "manual": manual, "safe_output": safe_output,
+            "hold_s": hold_s, "interlock": interlock,
+            "running_state": running_code() if running_state is None else running_state,
         }
         #: integrator state, %
         self.integral = 0.0
@@ -202,7 +254,7 @@ class PIController(Block):
     def params(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "feedback": self.feedback, "enable": self.enable, "antiwindup": self.antiwindup,
-            "track": self.track,
+            "track": self.track, "interlock": self.interlock,
         }
         out.update({p: getattr(self, p) for p in self.PARAMS})
         return out
@@ -225,7 +277,7 @@ class PIController(Block):
         for key, value in changes.items():
             if key == "feedback":
                 checked[key] = _channel_name(key, value)
-            elif key == "track":
+            elif key in ("track", "interlock"):
                 checked[key] = _channel_name(key, value, allow_empty=True)
             elif key == "antiwindup":
                 if value not in ANTIWINDUP:
@@ -251,13 +303,18 @@ class PIController(Block):
     def _apply(self, checked: dict[str, Any]) -> None:
         was_enabled = self.enable
         super()._apply(checked)
-        self.inputs = [self.feedback] + ([self.track] if self.track else [])
+        self.inputs = list(dict.fromkeys(
+            [self.feedback] + [c for c in (self.track, self.interlock) if c]))
         if self.enable and not was_enabled:
             self._starting = True
 
     # -- stepping -------------------------------------------------------------------
     #: a restarted cell never drives the valve until someone enables the loop again
     VOLATILE = ("enable",)
+
+    def safe_unsaved(self, changes: dict[str, Any]) -> bool:
+        """Switching the loop off is a safety action: it never waits for the disk."""
+        return isinstance(changes, dict) and changes.get("enable") is False
 
     @property
     def on_bus(self) -> bool:  # type: ignore[override]
@@ -270,13 +327,22 @@ class PIController(Block):
         y = inputs[self.feedback]
         if not math.isfinite(y):
             raise ArithmeticError(f"feedback {self.feedback} is {y}")
+        self._bad_since = None
         self.error = e = y - self.setpoint  # reverse acting: above the setpoint opens
         if not self.enable:
             held = inputs[self.track] if self.track else self.manual
             self.u = min(max(held, self.out_min), self.out_max)
             self.integral = self.u
             self.saturated = False
+            self.mode = "manual"
             return {self.output: self.u}
+        if self.interlock:
+            state = inputs.get(self.interlock)
+            if state != self.running_state:  # tripped or stopped: no loop to close
+                return self._safe(f"{self.interlock} = {state:g}, not {self.running_state} "
+                                  f"(running)" if state is not None else
+                                  f"{self.interlock} has no value")
+        self.mode = "auto"
         if self.u is None:  # enabled from the first tick: start from the manual opening
             self.u = self.manual
             self._starting = True
@@ -304,9 +370,34 @@ class PIController(Block):
         self.u = u_out
         return {self.output: u_out}
 
+    def _safe(self, why: str) -> dict[str, float]:
+        """Go to the safe output with the integrator reset to it: when the loop may run
+        again it starts bumplessly from there (no wind-up while it could not act)."""
+        self.u = self.integral = min(max(self.safe_output, self.out_min), self.out_max)
+        self.saturated = False
+        self._starting = True
+        self.mode = f"safe: {why}"
+        return {self.output: self.u}
+
+    def fallback(self, t: float, reason: str) -> dict[str, float] | None:
+        """While an input is invalid or stale: hold the last output (integrator frozen) for
+        ``hold_s``, then go to the safe output. A disabled controller is off the bus and
+        its output is marked as usual."""
+        if not self.enable:
+            return None
+        self._t_last = t
+        if self._bad_since is None:
+            self._bad_since = t
+        if self.u is not None and not self.mode.startswith("safe") and \
+                t - self._bad_since < self.hold_s:
+            self.saturated = False
+            self.mode = f"hold: {reason}"
+            return {self.output: self.u}
+        return self._safe(reason)
+
     def state(self) -> dict[str, Any]:
         return {"integral": self.integral, "output": self.u, "error": self.error,
-                "saturated": self.saturated}
+                "saturated": self.saturated, "mode": self.mode}
 
 
 def controllers(

@@ -98,7 +98,7 @@ def add_sim_options(parser: argparse.ArgumentParser) -> None:
 #: How a ``TESTCELL_<KEY>`` value is read (others are text).
 _ENV_PARSERS: dict[str, Callable[[str], Any]] = {
     "seed": int, "speed": float, "duration": float, "port": int, "state": Path,
-    "demand_timeout_cycles": float,
+    "demand_timeout_cycles": float, "plausibility": Path,
     "native": parse_bool, "no_sim": parse_bool, "protect_reads": parse_bool,
     "max_body": int, "max_script": int,
     "dbc": words, "scripts": words, "plugins": words,
@@ -130,6 +130,8 @@ class Settings:
     native: bool = False
     blocks: Mapping[str, Any] = field(default_factory=dict)
     """The block sets' own options, by key (``osc_init``, ``bias_design``, ...)."""
+    plausibility: Path | None = None
+    """A cell file of signal ranges and rate limits over the DBC's (:mod:`cell.runtime.plausibility`)."""
     # -- the service --------------------------------------------------------------------
     host: str = "127.0.0.1"
     port: int = 8000

@@ -24,8 +24,11 @@ from typing import Any
 
 import numpy as np
 
-from cell.runtime.blocks import Block, Param
+from cell.runtime.blocks import COVARIANCE_BOUNDS, Block, Param
 from cell.core.errors import ConfigError
+
+#: Bounds of Q, R and P0 (:data:`~cell.runtime.blocks.COVARIANCE_BOUNDS`).
+COV_MIN, COV_MAX = COVARIANCE_BOUNDS
 
 #: Largest moving-average window accepted: one hour of 10 Hz samples.
 MAX_SAMPLES = 36_000
@@ -90,8 +93,8 @@ class ScalarKalman(Block):
     family = "filter"
     keeps_input_unit = True
     PARAMS = {
-        "Q": Param("Q", float, "process noise covariance", gt=0.0),
-        "R": Param("R", float, "measurement noise covariance", gt=0.0),
+        "Q": Param("Q", float, "process noise covariance", ge=COV_MIN, le=COV_MAX),
+        "R": Param("R", float, "measurement noise covariance", ge=COV_MIN, le=COV_MAX),
     }
 
     def __init__(
@@ -107,7 +110,7 @@ class ScalarKalman(Block):
         self.source = source
         self.Q = self.PARAMS["Q"].check(Q)
         self.R = self.PARAMS["R"].check(R)
-        self.P0 = Param("P0", float, "initial covariance", gt=0.0).check(P0)
+        self.P0 = Param("P0", float, "initial covariance", ge=COV_MIN, le=COV_MAX).check(P0)
         self.x: float | None = None
         self.P = self.P0
         self.K = 0.0

@@ -146,7 +146,7 @@ class ObserverBlock(Block):
             "R": Param("R", float, "measurement noise covariance, one variance per measurement",
                        shape="diag", size=m, pd=True),
             "x0": Param("x0", float, "initial state, taken at the next reset", shape="vector",
-                        size=n),
+                        size=n, ge=-1e6, le=1e6),
             "P0": Param("P0", float, "initial covariance (diagonal), taken at the next reset",
                         shape="diag", size=n, pd=True),
             "nis_gate": Param("nis_gate", float, "chi-square probability of the NIS gate",

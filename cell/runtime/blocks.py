@@ -25,6 +25,11 @@ SHAPES = ("scalar", "vector", "diag", "matrix")
 
 Bound = float | tuple[float, ...] | None
 
+#: Bounds of every element of a covariance (a positive-definite ``diag`` or ``matrix``
+#: :class:`Param`) that declares none of its own: the range over which the estimators'
+#: numerics are tested. 1e300 or 5e-324 is no noise variance.
+COVARIANCE_BOUNDS = (1e-12, 1e6)
+
 
 @dataclass(frozen=True)
 class Param:
@@ -67,6 +72,9 @@ class Param:
     def __post_init__(self) -> None:
         if self.shape not in SHAPES:
             raise ValueError(f"Param {self.name}: shape must be one of {SHAPES}, got {self.shape!r}")
+        if self.pd and self.gt is None and self.ge is None and self.le is None:
+            object.__setattr__(self, "ge", COVARIANCE_BOUNDS[0])
+            object.__setattr__(self, "le", COVARIANCE_BOUNDS[1])
 
     def check(self, value: Any) -> Any:
         """Return ``value`` converted to the parameter's type and shape, or raise :class:`ParamError`."""
@@ -74,6 +82,7 @@ class Param:
             return self._check_array(value)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ParamError(self.name, f"must be a number, got {type(value).__name__} {value!r}")
+        given = value  # as sent: 1e300 is named so, not as the int it converts to
         if self.type is int:
             if isinstance(value, float):
                 if not math.isfinite(value) or value != int(value):
@@ -84,11 +93,11 @@ class Param:
             if not math.isfinite(value):
                 raise ParamError(self.name, f"must be finite, got {value!r}")
         if self.gt is not None and not value > self.gt:
-            raise ParamError(self.name, f"must be > {self.gt:g}, got {value!r}")
+            raise ParamError(self.name, f"must be > {self.gt:g}, got {given!r}")
         if self.ge is not None and not value >= self.ge:
-            raise ParamError(self.name, f"must be >= {self.ge:g}, got {value!r}")
+            raise ParamError(self.name, f"must be >= {self.ge:g}, got {given!r}")
         if self.le is not None and not value <= self.le:
-            raise ParamError(self.name, f"must be <= {self.le:g}, got {value!r}")
+            raise ParamError(self.name, f"must be <= {self.le:g}, got {given!r}")
         return value
 
     def dump(self, value: Any) -> Any:
@@ -118,11 +127,11 @@ class Param:
                                                 f"eigenvalue is {low:g}") from None
         else:
             label = "diagonal element" if self.shape == "diag" else "element"
-            self._check_elements(arr, label)
-            if self.pd and np.any(arr <= 0.0):
+            if self.pd and np.any(arr <= 0.0):  # first: the covariance bounds would word it
                 i = int(np.argmax(arr <= 0.0))
                 raise ParamError(self.name, f"must be positive definite: {label} [{i}] is "
                                             f"{float(arr[i])!r}")
+            self._check_elements(arr, label)
         arr.flags.writeable = False
         return arr
 
@@ -221,6 +230,9 @@ class Block:
     keeps_input_unit: ClassVar[bool] = False
     #: parameters that are saved but not restored at start-up (a controller starts disabled)
     VOLATILE: ClassVar[tuple[str, ...]] = ()
+    #: parameters that name an input channel -> the unit that channel must have (``""``: any);
+    #: the runtime refuses a change naming a channel there is not (:mod:`cell.runtime.checks`)
+    CHANNEL_PARAMS: ClassVar[dict[str, str]] = {}
     #: crank-angle sample streams (:mod:`cell.runtime.samples`) the block consumes sample by sample,
     #: besides its inputs read at ticks; empty for an ordinary block
     streams: tuple[str, ...] = ()
@@ -297,6 +309,11 @@ class Block:
         for key, value in checked.items():
             setattr(self, key, value)
 
+    def safe_unsaved(self, changes: dict[str, Any]) -> bool:
+        """Whether ``changes`` is a safety action that stays applied when it cannot be saved
+        (a controller switched off); the default: no change is."""
+        return False
+
     def _known(self) -> str:
         return ", ".join(self.PARAMS) or "nothing"
 
@@ -315,6 +332,12 @@ class Block:
 
     def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
         raise NotImplementedError
+
+    def fallback(self, t: float, reason: str) -> dict[str, float] | None:
+        """The outputs at a tick where an input is not ``ok`` (``reason`` says which and
+        why), instead of a step: a controller holds its last output or goes to its safe
+        output. ``None`` (the default) marks the outputs with the input's status."""
+        return None
 
     # -- sample streams (blocks that declare :attr:`streams`) ---------------------------
     def samples(self, stream: str, index: int, values: np.ndarray, t: float) -> None:

@@ -66,6 +66,9 @@ class HealthCounters:
         self.tick_seconds_max = 0.0
         #: per block: [wall seconds spent in step, steps]
         self.step_time: dict[str, list[float]] = {}
+        #: decoded bus values outside their signal's range or rate limit, by signal
+        #: (:mod:`cell.runtime.plausibility`)
+        self.implausible: collections.Counter[str] = collections.Counter()
 
     # -- counting -------------------------------------------------------------------
     def count_decode_error(self, kind: str, key: tuple[int, bool] | None = None) -> None:
@@ -129,6 +132,7 @@ class HealthCounters:
             "block_errors": dict(self.block_errors),
             "streams": streams,
             "withheld": dict(self.withheld),
+            "implausible": dict(self.implausible),
             "tick_overruns": self.tick_overruns,
             "last_frame_time": last_frame_time,
             "bus_time": now,

@@ -30,6 +30,8 @@ from cell.bus.dbc import CellDatabase, FrameDecodeError
 from cell.core.errors import ConfigError, UnknownBlockError
 from cell.runtime.health import (FRAME_ERROR_KINDS, MAX_COUNTED_IDS, MAX_UNKNOWN_IDS, OTHER_IDS,
                                  HealthCounters)
+from cell.runtime.channel_params import check_channel_params
+from cell.runtime.plausibility import Plausibility
 from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_streams
 from cell.runtime.store import ChannelStore, Reading
 
@@ -149,6 +151,8 @@ class Runtime:
         # an input goes stale by the third MED tick after its frames stop
         self.store = ChannelStore(db, self.history_len, stale_floor=1.5 / self.rates.MED)
         self.counters = HealthCounters()
+        #: range and rate checks of the decoded bus values (:mod:`cell.runtime.plausibility`)
+        self.plausibility = Plausibility(db.messages, self.counters.implausible)
         #: newest undecoded frame per message: frames are decoded when a tick or a reader
         #: needs their values, so the ten frames of a 100 Hz message between two 10 Hz
         #: ticks cost one decode, not ten
@@ -273,7 +277,9 @@ class Runtime:
     def set_params(self, name: str, changes: dict[str, Any], family: str | None = None) -> dict:
         """Validate and apply a parameter change; it takes effect at the next tick."""
         with self.lock:
-            return self.block(name, family).set_params(changes)
+            block = self.block(name, family)
+            check_channel_params(self, block, changes)  # a channel there is, of the right unit
+            return block.set_params(changes)
 
     # -- bus time -------------------------------------------------------------------
     @property
@@ -361,6 +367,7 @@ class Runtime:
             except FrameDecodeError as exc:
                 self.counters.count_decode_error(exc.kind)
                 continue
+            bad = self.plausibility.check(message.name, values, ts)  # {signal: reason} or None
             for name, value in values.items():
                 if self.producer.get(name):
                     continue  # our own output seen on the bus (e.g. a second runtime's)
@@ -369,6 +376,8 @@ class Runtime:
                     ch = self.store.add(name)
                 if ch.t is None or ts >= ch.t:
                     ch.update(value, ts)
+                    if bad is not None and name in bad:
+                        ch.mark(INVALID, bad[name])  # implausible: no block reads it
 
     def advance(self, t: float) -> None:
         """Run every tick due at or before bus time ``t`` (end of a log, or a silent bus)."""
@@ -444,8 +453,13 @@ class Runtime:
                     break
                 values[name] = ch.value  # type: ignore[assignment]
             if bad is not None:
+                held = block.fallback(t, bad[1])  # a controller's held or safe output, or None
                 for out in block.outputs:
-                    chans[out].mark(*bad)
+                    if held is not None and out in held:
+                        chans[out].update(float(held[out]), t)
+                        updated.add(out)
+                    else:
+                        chans[out].mark(*bad)
                 continue
             started = time.perf_counter()
             try:

@@ -7,7 +7,7 @@ from fastapi import APIRouter, Body
 from cell.core.registry import BlockFamily
 
 from ..deps import CellDep
-from ..schemas import BlockOut
+from ..schemas import BlockOut, TunedOut
 
 
 def block_router(fam: BlockFamily) -> APIRouter:
@@ -24,11 +24,14 @@ def block_router(fam: BlockFamily) -> APIRouter:
     def get_block(name: str, cell: CellDep) -> BlockOut:
         return BlockOut(**cell.block(family, name))
 
-    @router.patch("/{name}", response_model=BlockOut, name=f"tune {family}")
+    @router.patch("/{name}", response_model=TunedOut, name=f"tune {family}")
     def patch_block(name: str, cell: CellDep,
-                    changes: dict[str, Any] = Body(..., examples=list(fam.examples))) -> BlockOut:
-        """Change parameters; validated as a whole, effective at the next tick, saved."""
-        cell.tune(family, name, changes)
-        return BlockOut(**cell.block(family, name))
+                    changes: dict[str, Any] = Body(..., examples=list(fam.examples))) -> TunedOut:
+        """Change parameters; validated as a whole, effective at the next tick, saved. A
+        controller switched off stays off when the tuning file cannot be written (200,
+        with the failure in ``warnings`` and ``/health``)."""
+        warnings: list[str] = []
+        cell.tune(family, name, changes, warnings)
+        return TunedOut(**cell.block(family, name), warnings=warnings)
 
     return router

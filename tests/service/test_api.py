@@ -200,6 +200,8 @@ def test_controllers_are_tunable_and_keep_off_the_bus_until_enabled(db, tmp_path
         while t < t1 - 1e-9:
             rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 900.0, "EXH_BP_R": 900.0}, t))
             rt.ingest(db.encode("VALVE_POS", {"VALVE_POS_L": 100.0, "VALVE_POS_R": 100.0}, t))
+            rt.ingest(db.encode("ENGINE_STATUS", {"ENGINE_STATE": 1, "TRIP_REASON": 0,
+                                                  "EXH_BP_LIMIT": 1200, "ENGINE_LOAD": 100}, t))
             t = round(t + 0.01, 6)
         rt.advance(t1 - 0.01)
         return [f for f in rt.take_outbox() if f.arbitration_id == db.message("VALVE_DEMAND").frame_id]

@@ -11,6 +11,7 @@ from cell.core.errors import ParamError
 from cell.runtime.scheduler import Runtime
 
 R = 680.0
+RUNNING = 1.0  # ENGINE_STATE (DBC VAL_ 259)
 
 
 def reference_pi(ys, kp, ki, dt, u0):
@@ -32,6 +33,8 @@ def drive(pi, ys, dt=0.1, pos=None):
         inputs = {pi.feedback: y}
         if pi.track:
             inputs[pi.track] = pos if pos is not None else 50.0
+        if pi.interlock:
+            inputs[pi.interlock] = RUNNING  # the engine runs
         out.append(pi.step(i * dt, inputs)[pi.output])
     return out
 
@@ -53,7 +56,7 @@ def test_anti_windup_holds_the_integrator_at_the_limit():
     assert pi.u == 60.0
     assert pi.integral == pytest.approx(60.0, abs=1.0)  # held near the limit, not 105
     # the moment the error reverses, the output leaves the limit (no wind-down delay)
-    u = pi.step(5.0, {"x": R - 100.0})[pi.output]
+    u = pi.step(5.0, {"x": R - 100.0, "ENGINE_STATE": RUNNING})[pi.output]
     assert u < 60.0
 
 
@@ -75,12 +78,12 @@ def test_rate_limit_bounds_each_step():
 
 def test_disabled_tracks_the_valve_and_enabling_is_bumpless():
     pi = PIController("R", "x", kp=0.05, ki=0.01)
-    assert not pi.enable and pi.inputs == ["x", "VALVE_POS_R"]
+    assert not pi.enable and pi.inputs == ["x", "VALVE_POS_R", "ENGINE_STATE"]
     assert drive(pi, [300.0] * 3, pos=100.0)[-1] == 100.0  # open loop: follows the valve
     pi.set_params({"enable": True})
-    first = pi.step(0.3, {"x": 300.0, "VALVE_POS_R": 100.0})[pi.output]
+    first = pi.step(0.3, {"x": 300.0, "VALVE_POS_R": 100.0, "ENGINE_STATE": RUNNING})[pi.output]
     assert first == 100.0  # no bump although kp * e = -19 %
-    second = pi.step(0.4, {"x": 300.0, "VALVE_POS_R": 100.0})[pi.output]
+    second = pi.step(0.4, {"x": 300.0, "VALVE_POS_R": 100.0, "ENGINE_STATE": RUNNING})[pi.output]
     assert second == pytest.approx(100.0 + 0.01 * (300.0 - R) * 0.1)
 
 
@@ -114,19 +117,21 @@ def test_changing_feedback_changes_inputs():
     pi = PIController("L")
     assert pi.inputs[0] == "EXH_BP_L_Kalman"
     pi.set_params({"feedback": "EXH_BP_L_MAF", "kp": 0.02})
-    assert pi.inputs == ["EXH_BP_L_MAF", "VALVE_POS_L"] and pi.kp == 0.02
-    pi.set_params({"track": ""})
+    assert pi.inputs == ["EXH_BP_L_MAF", "VALVE_POS_L", "ENGINE_STATE"] and pi.kp == 0.02
+    pi.set_params({"track": "", "interlock": ""})
     assert pi.inputs == ["EXH_BP_L_MAF"]
 
 
 def test_factory_and_demand_on_the_bus(db):
     blocks = controllers("raw", enable=True, track="", manual=70.0)
     assert [(b.name, b.inputs, b.outputs) for b in blocks] == [
-        ("PI_L", ["EXH_BP_L"], ["VALVE_DEMAND_L"]),
-        ("PI_R", ["EXH_BP_R"], ["VALVE_DEMAND_R"]),
+        ("PI_L", ["EXH_BP_L", "ENGINE_STATE"], ["VALVE_DEMAND_L"]),
+        ("PI_R", ["EXH_BP_R", "ENGINE_STATE"], ["VALVE_DEMAND_R"]),
     ]
     assert blocks[0].family == "controller" and blocks[0].kind == "pi"
     rt = Runtime(db, blocks)
+    rt.ingest(db.encode("ENGINE_STATUS", {"ENGINE_STATE": RUNNING, "TRIP_REASON": 0.0,
+                                          "EXH_BP_LIMIT": 1500.0, "ENGINE_LOAD": 100.0}, 0.0))
     for i in range(11):
         rt.ingest(db.encode("EXH_BP", {"EXH_BP_L": 500.0, "EXH_BP_R": 800.0}, i * 0.01))
     rt.advance(0.1)

@@ -339,4 +339,10 @@ def main(args: argparse.Namespace, settings: Settings | None = None,
         logger.info("sim stopped")
     finally:
         bus.shutdown()
+    if parent is not None and parent.lost():
+        # an orphan leaves at once: nothing is left to flush but the log, and the
+        # interpreter's teardown of a loaded process can take seconds on a busy machine
+        logger.info("sim exits: its parent died")
+        logging.shutdown()
+        os._exit(0)
     return 0

@@ -65,7 +65,7 @@ def test_a_garbage_datagram_is_counted_and_the_simulator_keeps_running(tmp_path)
                             stdin=subprocess.DEVNULL)
     try:
         with open_bus(spec) as peer:
-            first = next((v for _, n, v in _frames(peer, 15.0) if n == "SIM_STATUS"), None)
+            first = next((v for _, n, v in _frames(peer, 40.0) if n == "SIM_STATUS"), None)
             assert first is not None, (tmp_path / "sim.log").read_text()
             assert first["SIM_UNDECODABLE"] == 0
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -276,9 +276,17 @@ class Cell:
         """The engine's trip as the bus shows it (``None``: running, or not known)."""
         return supervision.trip(self.runtime)
 
-    def reset_trip(self) -> int:
-        """Send ``ENGINE_RESET`` with a new counter value; returns the value sent."""
-        return supervision.reset_trip(self.runtime)
+    def reset_trip(self) -> dict[str, Any]:
+        """Step one of a trip reset: send a request with a fresh challenge (see
+        :func:`cell.runtime.supervision.request_reset`); returns the challenge and the window
+        within which :meth:`confirm_reset` must follow."""
+        challenge = supervision.request_reset(self.runtime, self.bus_time())
+        return {"challenge": challenge, "window_s": supervision.RESET_WINDOW_S}
+
+    def confirm_reset(self, challenge: Any) -> int:
+        """Step two: confirm the pending request's ``challenge``; returns it.
+        :class:`~cell.core.errors.ParamError` (nothing sent) if it is not the pending one."""
+        return supervision.confirm_reset(self.runtime, challenge, self.bus_time())
 
     # -- health -----------------------------------------------------------------------
     def health(self) -> dict[str, Any]:

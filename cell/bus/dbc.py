@@ -19,6 +19,7 @@ import cantools
 from cantools.database import EncodeError
 from cantools.database.can import Database, Message
 
+from cell.bus import e2e
 from cell.core.errors import ConfigError
 
 #: Kinds of undecodable frame, as counted in ``/health``.
@@ -142,6 +143,10 @@ class CellDatabase:
         self._by_id: dict[tuple[int, bool], Message] = {}
         self._by_name: dict[str, Message] = {}
         self._file_of: dict[str, Path] = {}  # message name -> file
+        #: E2E-protected messages by name (:mod:`cell.bus.e2e`)
+        self.e2e: dict[str, e2e.E2ESpec] = {}
+        #: the alive counters of the protected messages this process sends
+        self.counters = e2e.Counters()
         self.signals: dict[str, SignalInfo] = {}
         self._message_of: dict[str, Message] = {}
         databases = [(path, _load_file(path)) for path in self.files]
@@ -193,6 +198,9 @@ class CellDatabase:
                 self._message_of[s.name] = m
             self._file_of[m.name] = path
             self._by_name[m.name] = m
+            spec = e2e.spec_of(m, str(path))
+            if spec is not None:
+                self.e2e[m.name] = spec
         self._by_id.update(file_ids)
 
     # -- the catalogue ----------------------------------------------------------------
@@ -266,8 +274,19 @@ class CellDatabase:
 
     def encode(self, message_name: str, values: dict[str, float], timestamp: float = 0.0) -> can.Message:
         """Encode physical values into a frame, clamping each to its DBC range; a NaN is
-        refused (:class:`cantools.database.EncodeError`), as it has no place in a frame."""
+        refused (:class:`cantools.database.EncodeError`), as it has no place in a frame.
+
+        An E2E-protected message (:mod:`cell.bus.e2e`) gets its alive counter (the next of
+        this database's per-message counter, unless ``values`` gives one) and its CRC (over
+        the data ID and the payload, unless ``values`` gives one: a forged frame in a test)."""
         message = self.message(message_name)
+        spec = self.e2e.get(message.name)
+        if spec is not None:
+            values = {**values}
+            if spec.counter not in values:
+                values[spec.counter] = self.counters.take(message.name)
+            forged_crc = spec.crc in values
+            values.setdefault(spec.crc, 0)
         clamped = {}
         for s in message.signals:
             v = float(values[s.name])
@@ -281,6 +300,8 @@ class CellDatabase:
         # every value is clamped into its DBC range above, so the strict range check of
         # cantools would only repeat it
         data = message.encode(clamped, scaling=True, strict=False)
+        if spec is not None and not forged_crc:
+            data = e2e.protect(spec, data)
         return can.Message(
             timestamp=timestamp,
             arbitration_id=message.frame_id,
@@ -288,10 +309,20 @@ class CellDatabase:
             data=data,
         )
 
+    def payload_signals(self, message: Message) -> list[str]:
+        """The signals of a message a sender gives: all but its E2E counter and CRC."""
+        spec = self.e2e.get(message.name)
+        skip = () if spec is None else (spec.counter, spec.crc)
+        return [s.name for s in message.signals if s.name not in skip]
+
     def messages_carrying(self, signals: set[str]) -> list[Message]:
-        """DBC messages all of whose signals are in ``signals``."""
-        return [m for m in self._by_name.values()
-                if m.signals and all(s.name in signals for s in m.signals)]
+        """DBC messages all of whose signals (but an E2E counter and CRC) are in ``signals``."""
+        out = []
+        for m in self._by_name.values():
+            names = self.payload_signals(m)
+            if names and all(n in signals for n in names):
+                out.append(m)
+        return out
 
 
 @lru_cache(maxsize=8)

@@ -60,8 +60,9 @@ def scenario_keys(db: CellDatabase) -> dict[str, ScenarioKey]:
     for m in db.messages:
         if SENDER not in (m.senders or []):
             continue
+        given = set(db.payload_signals(m))  # not the E2E counter and CRC: encode fills them
         for s in m.signals:
-            if RECEIVER in (s.receivers or []):
+            if RECEIVER in (s.receivers or []) and s.name in given:
                 keys[s.name.lower()] = ScenarioKey(s.name.lower(), m, s)
     return dict(sorted(keys.items()))
 
@@ -141,7 +142,7 @@ def scenario_frames(db: CellDatabase, values: Mapping[str, Any], timestamp: floa
     for name, given in grouped.items():
         message = db.message(name)
         full = {}
-        for s in message.signals:
+        for s in (message.get_signal_by_name(n) for n in db.payload_signals(message)):
             if s.name in given:
                 full[s.name] = given[s.name]
             else:
@@ -155,7 +156,9 @@ def describe_frames(db: CellDatabase, frames: Sequence[can.Message]) -> list[dic
     out = []
     for msg in frames:
         message, values = db.decode(msg)
-        out.append({"message": message.name, "frame_id": message.frame_id, "signals": values})
+        given = db.payload_signals(message)  # not the E2E counter and CRC
+        out.append({"message": message.name, "frame_id": message.frame_id,
+                    "signals": {k: values[k] for k in given}})
     return out
 
 

@@ -56,6 +56,10 @@ SIM_OPTIONS: tuple[Option, ...] = (
     Option("duration", "--duration", float, metavar="S", check=_duration,
            help="stop after S simulation seconds (default: run until stopped; with --out, "
                 "the duty cycle's nominal length)"),
+    Option("demand_timeout_cycles", "--demand-timeout-cycles", float, metavar="N",
+           check=_positive,
+           help="command watchdog: cycles of a demand (VALVE_DEMAND) without a valid frame "
+                "before the valves open and the engine idles (default 3)"),
 )
 
 
@@ -94,7 +98,7 @@ def add_sim_options(parser: argparse.ArgumentParser) -> None:
 #: How a ``TESTCELL_<KEY>`` value is read (others are text).
 _ENV_PARSERS: dict[str, Callable[[str], Any]] = {
     "seed": int, "speed": float, "duration": float, "port": int, "state": Path,
-    "plausibility": Path,
+    "demand_timeout_cycles": float, "plausibility": Path,
     "native": parse_bool, "no_sim": parse_bool, "protect_reads": parse_bool,
     "max_body": int, "max_script": int,
     "dbc": words, "scripts": words, "plugins": words, "designs": words,
@@ -112,6 +116,8 @@ class Settings:
     seed: int = 0
     speed: float = 1.0
     duration: float | None = None
+    demand_timeout_cycles: float | None = None
+    """The command watchdog's timeout in cycles of the demand (``None``: 3)."""
     plant: Mapping[str, Any] = field(default_factory=dict)
     """The engine's own options, by key (``valve``, ``bp_limit``, ...)."""
     # -- the bus and its frames ---------------------------------------------------------
@@ -221,7 +227,7 @@ class Settings:
         if self.log_level not in LOG_LEVELS:
             raise ConfigError(f"--log-level {self.log_level!r}: choose one of {', '.join(LOG_LEVELS)}")
         by_key = {o.key: o for o in SIM_OPTIONS}
-        for key in ("speed", "duration"):
+        for key in ("speed", "duration", "demand_timeout_cycles"):
             by_key[key].validate(getattr(self, key))
         if self.engine is not None:
             profile = registry.engine_profile(self.engine)

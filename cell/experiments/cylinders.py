@@ -188,11 +188,12 @@ def run_case(case: Case, db: CellDatabase | None = None,
         frames = frames if impair is None else impair(frames)
         return frames if wire is None else wire(frames)
 
-    command = scenario_frames(db, {f"fuel_offset_cyl_{i + 1}": v for i, v in enumerate(case.offsets)})
+    offsets = {f"fuel_offset_cyl_{i + 1}": v for i, v in enumerate(case.offsets)}
     on = False
     for _k, _ in Lockstep(sim, rt, on_tick=ticks, wire=bus).steps(round(case.duration / sim.dt)):
         if not on and sim.t >= case.t_on - 1e-9:
-            for f in command:
+            # stamped now: the simulator discards a command older than one cycle (E2E)
+            for f in scenario_frames(db, offsets, sim.t0 + sim.t):
                 sim.receive(f)  # what `testcell scenario` puts on the bus
             on = True
     c = ticks.columns()

@@ -9,8 +9,15 @@ Signal chain per bank (seed 004: back-pressure "noisy and erratic", +-200 mmH2O 
 The engine protection watches the noise-free back-pressure of both banks; above
 ``bp_limit`` it trips the engine (``ENGINE_STATE`` = 2, read by the engine, which runs
 down). Seed 004's raw-signal loop "triggered an engine limit". A trip holds until the
-operator resets it: each new value of ``ENGINE_RESET`` (``POST /engine/reset``, or
-``testcell scenario engine_reset=N``) re-arms the protection and restarts the engine.
+operator resets it in two steps (``ENGINE_CMD``): a request carrying a challenge value
+(``ENGINE_RESET_REQ`` = N), then within ``reset_window`` a confirm carrying the same value
+(``ENGINE_RESET_CONFIRM`` = N). The confirm clears the trip only if its cause has cleared:
+both banks' back-pressure below ``bp_limit - reset_margin``. A single frame never resets;
+``RESET_STATE`` tells what the last step did. ``POST /engine/reset`` and
+``/engine/reset/confirm`` send the two steps; so can ``testcell scenario``.
+
+In the safe state (:meth:`ExhaustBanks.set_safe`: the command watchdog, or the simulator's
+parent died) both valves run fully open, whatever the demand, as that lowers back-pressure.
 """
 
 from __future__ import annotations
@@ -28,6 +35,13 @@ from cell.plant.diesel import RUNNING, TRIPPED
 BANKS = ("L", "R")
 #: ``TRIP_REASON`` values (DBC ``VAL_ 259 TRIP_REASON``).
 TRIP_NONE, TRIP_EXH_BP_LIMIT = 0, 1
+#: ``RESET_STATE`` values (DBC ``VAL_ 264 RESET_STATE``).
+(RESET_NONE, RESET_PENDING, RESET_DONE, RESET_REFUSED_CAUSE, RESET_REFUSED_NO_REQUEST,
+ RESET_REFUSED_NOT_TRIPPED, RESET_REFUSED_BAD_FRAME) = range(7)
+#: The two steps' signals (DBC ``ENGINE_CMD``).
+RESET_REQUEST, RESET_CONFIRM = "ENGINE_RESET_REQ", "ENGINE_RESET_CONFIRM"
+#: Valve opening of the safe state, %: fully open lowers back-pressure.
+SAFE_VALVE = 100.0
 
 _NOISE_BLOCK = 2048  # noise samples drawn per numpy call, per bank
 
@@ -84,6 +98,13 @@ class ExhaustParams:
     """Engine-protection limit on either bank's noise-free back-pressure, mmH2O. Seed 004's
     raw-signal loop "triggered an engine limit"; 1200 sits well above the 680 target and the
     noise (+-200), below the 30 %-open value (~1400)."""
+
+    reset_margin: float = 100.0
+    """A reset clears a trip only when both banks' noise-free back-pressure is this far below
+    ``bp_limit``, mmH2O: the cause has cleared, and the engine does not re-trip at once."""
+
+    reset_window: float = 2.0
+    """Longest time from a reset request to its confirm, s."""
 
     # -- measurement noise ------------------------------------------------------------
     cylinders_per_bank: int = 8
@@ -224,9 +245,10 @@ class ExhaustBanks(Plant):
     The banks start in steady state at the engine's initial flow.
     """
 
-    inputs = ("ENGINE_SPEED", "EXH_FLOW_TRUE", "VALVE_DEMAND_L", "VALVE_DEMAND_R", "ENGINE_RESET")
+    inputs = ("ENGINE_SPEED", "EXH_FLOW_TRUE", "VALVE_DEMAND_L", "VALVE_DEMAND_R")
+    commands = (RESET_REQUEST, RESET_CONFIRM)
     outputs = ("EXH_BP_L", "EXH_BP_R", "VALVE_POS_L", "VALVE_POS_R", "ENGINE_STATE",
-               "TRIP_REASON", "EXH_BP_LIMIT", "EXH_BP_L_TRUE", "EXH_BP_R_TRUE",
+               "TRIP_REASON", "RESET_STATE", "EXH_BP_LIMIT", "EXH_BP_L_TRUE", "EXH_BP_R_TRUE",
                "VALVE_POS_L_TRUE", "VALVE_POS_R_TRUE")
 
     def __init__(self, params: ExhaustParams | None = None, seed: int = 0,
@@ -242,7 +264,9 @@ class ExhaustBanks(Plant):
         self.trip_reason = TRIP_NONE
         self.trip_bank: str | None = None  # bank whose back-pressure tripped the engine
         self.trip_time: float | None = None  # simulation time of the trip, s
-        self._reset_seen: float | None = None  # last ENGINE_RESET value acted on
+        self.reset_state = RESET_NONE
+        self._reset_request: tuple[int, float] | None = None  # (challenge, time) pending
+        self.safe = False
         self._a_gas = lag_factor(p.period, p.tau_gas)
         self._n_delay = max(0, round(p.sensor_delay / p.period))
         self.valves = {b: Valve(initial_valve, p) for b in BANKS}
@@ -310,7 +334,7 @@ class ExhaustBanks(Plant):
         self.speed = u["ENGINE_SPEED"]
         self.flow = u["EXH_FLOW_TRUE"]
         for b in BANKS:
-            demand = u.get(f"VALVE_DEMAND_{b}")
+            demand = SAFE_VALVE if self.safe else u.get(f"VALVE_DEMAND_{b}")
             if demand is not None:
                 self.valves[b].demand = min(max(demand, 0.0), 100.0)
         a_gas = self._a_gas
@@ -327,13 +351,6 @@ class ExhaustBanks(Plant):
             else:
                 self.truth[b] = pg
         self._delay_i = (j + 1) % n
-        reset = u.get("ENGINE_RESET")
-        if reset is not None and reset != self._reset_seen:
-            self._reset_seen = reset  # a new counter value: the operator reset the trip
-            if self.state == TRIPPED:
-                self.state = RUNNING
-                self.trip_reason = TRIP_NONE
-                self.trip_bank = self.trip_time = None
         if self.state == RUNNING:
             for b in BANKS:
                 if self.p_gas[b] > self.bp_limit:
@@ -343,6 +360,39 @@ class ExhaustBanks(Plant):
                     self.trip_time = t
                     break
         self._update_noise()
+
+    def set_safe(self, safe: bool) -> None:
+        self.safe = safe
+
+    def cause_cleared(self) -> bool:
+        """Whether both banks' back-pressure is ``reset_margin`` below the trip level."""
+        level = self.bp_limit - self.params.reset_margin
+        return all(self.p_gas[b] < level for b in BANKS)
+
+    def command(self, values: Mapping[str, float], t: float) -> None:
+        """One ``ENGINE_CMD`` frame: a reset request, or its confirm (see the module notes)."""
+        request = int(values.get(RESET_REQUEST, 0))
+        confirm = int(values.get(RESET_CONFIRM, 0))
+        if request and confirm:
+            self.reset_state = RESET_REFUSED_BAD_FRAME  # one frame is never both steps
+            self._reset_request = None
+        elif request:
+            self._reset_request = (request, t)
+            self.reset_state = RESET_PENDING
+        elif confirm:
+            pending, self._reset_request = self._reset_request, None
+            if pending is None or pending[0] != confirm \
+                    or t - pending[1] > self.params.reset_window + 1e-9:
+                self.reset_state = RESET_REFUSED_NO_REQUEST
+            elif self.state != TRIPPED:
+                self.reset_state = RESET_REFUSED_NOT_TRIPPED
+            elif not self.cause_cleared():
+                self.reset_state = RESET_REFUSED_CAUSE
+            else:
+                self.state = RUNNING
+                self.trip_reason = TRIP_NONE
+                self.trip_bank = self.trip_time = None
+                self.reset_state = RESET_DONE
 
     def raw(self, bank: str) -> float:
         """The noisy sensor value of one bank, clamped to the sensor range, mmH2O."""
@@ -358,6 +408,7 @@ class ExhaustBanks(Plant):
             "VALVE_POS_R": vr,
             "ENGINE_STATE": float(self.state),
             "TRIP_REASON": float(self.trip_reason),
+            "RESET_STATE": float(self.reset_state),
             "EXH_BP_LIMIT": self.bp_limit,
             "EXH_BP_L_TRUE": self.truth["L"],
             "EXH_BP_R_TRUE": self.truth["R"],

@@ -39,6 +39,9 @@ class Plant:
     #: crank-angle sample streams (:mod:`cell.runtime.samples`) the plant produces: samples that
     #: it hands out with :meth:`take_samples` rather than as held outputs
     streams: ClassVar[tuple[str, ...]] = ()
+    #: command signals (events, not held values): each received frame carrying one is handed
+    #: to :meth:`command` once, with the frame's other command signals of this plant
+    commands: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, name: str, period: float) -> None:
         if not period > 0 or not math.isfinite(period):
@@ -59,6 +62,13 @@ class Plant:
     def output(self) -> dict[str, float]:
         """The current value of every output."""
         raise NotImplementedError
+
+    def command(self, values: Mapping[str, float], t: float) -> None:
+        """Act on one received command frame's signals of :attr:`commands` at time ``t``."""
+
+    def set_safe(self, safe: bool) -> None:
+        """Enter (``True``) or leave the safe state: what an actuator or an engine controller
+        does when its commands stop (back-pressure valves open, the engine idles)."""
 
     def take_samples(self) -> dict[str, tuple[int, np.ndarray, np.ndarray]]:
         """The stream samples produced since the last call, per stream in :attr:`streams`.

@@ -56,7 +56,13 @@ class Composition:
         for plant in self.plants:
             for inp in plant.inputs:
                 self.consumers.setdefault(inp, []).append(plant)
-        self.external = {s for s in self.consumers if s not in self.producer}
+        self.commander: dict[str, Plant] = {}
+        for plant in self.plants:
+            for name_ in plant.commands:
+                self.commander[name_] = plant
+        self.external = {s for s in self.consumers if s not in self.producer} | set(self.commander)
+        #: whether the plants are in their safe state (:meth:`set_safe`)
+        self.safe = False
         self.dt = min(p.period for p in self.plants)
         self._every: list[int] = []
         for plant in self.plants:
@@ -100,6 +106,23 @@ class Composition:
         if not math.isfinite(value):
             raise ConfigError(f"engine {self.name}: {name} must be finite, got {value}")
         self.signals[name] = value
+
+    def command(self, values: dict[str, float]) -> None:
+        """Hand one received frame's command signals to the plants that take them (once)."""
+        by_plant: dict[str, tuple[Plant, dict[str, float]]] = {}
+        for name, v in values.items():
+            plant = self.commander.get(name)
+            if plant is not None:
+                by_plant.setdefault(plant.name, (plant, {}))[1][name] = float(v)
+        for plant, given in by_plant.values():
+            plant.command(given, self.t)
+
+    def set_safe(self, safe: bool) -> None:
+        """Put every plant in its safe state, or take it out (:meth:`Plant.set_safe`)."""
+        if safe != self.safe:
+            self.safe = safe
+            for plant in self.plants:
+                plant.set_safe(safe)
 
     def step(self) -> None:
         """Advance every plant that is due by one step of ``dt``."""

@@ -363,6 +363,7 @@ class DieselEngine(Plant):
         super().__init__(name, p.period)
         self.schedule = cycle if isinstance(cycle, DutyCycle) else duty_cycle(cycle, p)
         self.state = RUNNING
+        self.safe = False  # safe state: low idle, no load, whatever the cycle says
         self._T_rated = p.rated_torque
         self._a_speed = lag_factor(p.period, p.tau_speed)
         self._a_torque = lag_factor(p.period, p.tau_torque)
@@ -391,9 +392,10 @@ class DieselEngine(Plant):
         if self.state == RUNNING and u.get("ENGINE_STATE", RUNNING) != RUNNING:
             self.state = int(u["ENGINE_STATE"])  # tripped: stays down until reset
         elif self.state == TRIPPED and u.get("ENGINE_STATE") == RUNNING:
-            self.state = RUNNING  # the trip was reset (ENGINE_RESET): restart and follow the cycle
+            self.state = RUNNING  # the trip was reset (ENGINE_CMD): restart and follow the cycle
         if self.state == RUNNING:
-            sp_speed, sp_load = self.schedule.setpoint(t)
+            sp_speed, sp_load = (self.params.idle_speed, 0.0) if self.safe \
+                else self.schedule.setpoint(t)
             self.speed += self._a_speed * (sp_speed - self.speed)
             self.torque += self._a_torque * (sp_load * self._T_rated - self.torque)
         else:
@@ -403,6 +405,9 @@ class DieselEngine(Plant):
                 self.speed = 0.0
                 self.torque = 0.0
         self._update_flow()
+
+    def set_safe(self, safe: bool) -> None:
+        self.safe = safe
 
     def output(self) -> dict[str, float]:
         return {

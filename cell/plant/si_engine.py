@@ -365,11 +365,15 @@ class SIEngine(Plant):
         self._hist = [1.0] * 256  # engine-out λ history, for the transport delay
         self._hi = 0
         self.lam = 1.0
+        self.safe = False  # safe state: idle, whatever the cycle says
+
+    def set_safe(self, safe: bool) -> None:
+        self.safe = safe
 
     def step(self, t: float, u: Mapping[str, float]) -> None:
         p = self.params
         dt = self.period
-        self.speed, self.load = self.cycle.setpoint(t)
+        self.speed, self.load = (p.idle_speed, p.idle_load) if self.safe else self.cycle.setpoint(t)
         dload = (self.load - self._prev_load) / dt
         self._prev_load = self.load
         self.x_tr += self._a_tr * (-p.transient_gain * p.transient_tau * dload - self.x_tr)

@@ -568,7 +568,7 @@ class Runtime:
         if self._out_messages is None:
             self._out_messages = self.db.messages_carrying(set(self.producer))
         for message in self._out_messages:
-            names = [s.name for s in message.signals]
+            names = self.db.payload_signals(message)  # the E2E counter and CRC: encode's
             if not updated.intersection(names):
                 continue
             if not all(self.blocks[self.producer[n]].on_bus for n in names):

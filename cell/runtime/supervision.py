@@ -9,17 +9,23 @@ minute (missed cycles of cyclic messages, datagrams the kernel dropped), the run
 behind the wall clock, tick overruns per minute, a block that is faulted now, a stall of the
 loop or stale outputs dropped after one in the last minute. The trip is read
 from the bus like everything else (``ENGINE_STATE`` = TRIPPED and ``TRIP_REASON``, decoded
-with the DBC's value names); it is reset by a new value of ``ENGINE_RESET`` (DBC
-``cell_commands.dbc``), which ``POST /engine/reset`` sends and ``testcell scenario`` can send.
+with the DBC's value names). It is reset in two steps (DBC ``ENGINE_CMD``, in
+``cell_commands.dbc``): :func:`request_reset` sends a request carrying a fresh random
+challenge, :func:`confirm_reset` a confirm carrying that challenge; the simulator clears the
+trip only on a confirm matching a request of the last 2 s, and only when the trip's cause has
+cleared (``RESET_STATE`` tells what it did). ``POST /engine/reset`` and
+``POST /engine/reset/confirm`` are the two steps; ``testcell scenario engine_reset_req=N``
+then ``engine_reset_confirm=N`` too.
 """
 
 from __future__ import annotations
 
 import time
+import secrets
 from typing import Any
 
 from cell.runtime.channels import OK
-from cell.core.errors import ConfigError
+from cell.core.errors import ConfigError, ParamError
 from cell.runtime.scheduler import Runtime
 
 WAITING, HEALTHY, DEGRADED, FAILED = "waiting", "ok", "degraded", "failed"
@@ -33,7 +39,11 @@ LIMITS = {"lost_per_min": 0, "lag_s": 0.5, "overruns_per_min": 6}
 RECENT_S = 60.0
 
 #: The signals the trip is read from and the reset is written to.
-STATE_SIGNAL, REASON_SIGNAL, RESET_SIGNAL = "ENGINE_STATE", "TRIP_REASON", "ENGINE_RESET"
+STATE_SIGNAL, REASON_SIGNAL = "ENGINE_STATE", "TRIP_REASON"
+#: The two steps of a reset (DBC ``ENGINE_CMD``).
+REQUEST_SIGNAL, CONFIRM_SIGNAL = "ENGINE_RESET_REQ", "ENGINE_RESET_CONFIRM"
+#: The simulator's window from request to confirm, s (``ExhaustParams.reset_window``).
+RESET_WINDOW_S = 2.0
 
 
 def _label(runtime: Runtime, signal: str, value: float) -> str:
@@ -140,26 +150,53 @@ def validity(h: dict[str, Any], live: Any = None) -> list[str]:
     return reasons
 
 
-def reset_trip(runtime: Runtime) -> int:
-    """Queue an ``ENGINE_RESET`` frame with a new counter value; returns the value sent.
-
-    The value is one more than the newest seen on the bus (a ``testcell scenario`` command
-    is seen there too) or sent by this runtime, so the simulator always sees a change.
-    """
+def _send_reset_step(runtime: Runtime, request: int, confirm: int, at: float) -> None:
     db = runtime.db
-    if RESET_SIGNAL not in db.signals:
-        raise ConfigError(f"no DBC file defines {RESET_SIGNAL}: this cell cannot reset a trip")
+    if REQUEST_SIGNAL not in db.signals or CONFIRM_SIGNAL not in db.signals:
+        raise ConfigError(f"no DBC file defines {REQUEST_SIGNAL} and {CONFIRM_SIGNAL}: this "
+                          "cell cannot reset a trip")
+    message = db.signals[REQUEST_SIGNAL].message
+    runtime.outbox.append(db.encode(message, {REQUEST_SIGNAL: request, CONFIRM_SIGNAL: confirm},
+                                    at))
+
+
+def request_reset(runtime: Runtime, at: float | None = None) -> int:
+    """Step one: queue a reset request with a fresh random challenge; returns the challenge.
+
+    ``at`` is the bus time stamped on the frame (default: the runtime's). A newer request
+    replaces an older one that was not confirmed.
+    """
+    challenge = secrets.randbelow(65535) + 1  # 1..65535: 0 means "no request"
     with runtime.lock:
-        seen = runtime.channels.get(RESET_SIGNAL)
-        last, at = runtime.extra_state.get("reset_sent", (0, -float("inf")))
-        if seen is not None and seen.value is not None and seen.t is not None and seen.t >= at:
-            last = int(seen.value)  # someone else's command is newer than ours
-        value = last % 255 + 1  # 1..255: never the initial 0
-        runtime.extra_state["reset_sent"] = (value, runtime.now or 0.0)
-        msg = db.encode(db.signals[RESET_SIGNAL].message, {RESET_SIGNAL: value}, runtime.now or 0.0)
-        runtime.outbox.append(msg)
-        return value
+        now = (runtime.now or 0.0) if at is None else at
+        _send_reset_step(runtime, challenge, 0, now)
+        runtime.extra_state["reset_challenge"] = (challenge, now)
+    return challenge
 
 
-__all__ = ["DEGRADED", "FAILED", "HEALTHY", "LIMITS", "WAITING", "assess", "reset_trip", "trip",
-           "validity"]
+def confirm_reset(runtime: Runtime, challenge: Any, at: float | None = None) -> int:
+    """Step two: queue the confirm of the pending request; returns the challenge sent.
+
+    Raises
+    ------
+    ParamError
+        ``challenge`` is not the pending request's (none pending, another value, or not a
+        whole number); nothing is sent and the pending request stays.
+    """
+    if isinstance(challenge, bool) or not isinstance(challenge, int):
+        raise ParamError("challenge", f"must be the whole number POST /engine/reset returned, "
+                                      f"got {challenge!r}")
+    with runtime.lock:
+        pending = runtime.extra_state.get("reset_challenge")
+        if pending is None:
+            raise ParamError("challenge", "no reset request is pending: POST /engine/reset first")
+        if challenge != pending[0]:
+            raise ParamError("challenge", f"{challenge} is not the pending request's challenge")
+        now = (runtime.now or 0.0) if at is None else at
+        _send_reset_step(runtime, 0, challenge, now)
+        del runtime.extra_state["reset_challenge"]
+    return challenge
+
+
+__all__ = ["DEGRADED", "FAILED", "HEALTHY", "LIMITS", "WAITING", "assess", "confirm_reset",
+           "request_reset", "trip", "validity"]

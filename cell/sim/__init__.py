@@ -7,14 +7,30 @@ consume them. Offline, :func:`write_log` writes the same frames to any log pytho
 (candump ``.log``, ``.asc``, ``.blf``, ``.csv``) as fast as it can, through the one lockstep
 loop (:mod:`cell.sim.lockstep`). Only CAN frames pass between the simulator and the runtime
 (DESIGN.md).
+
+Live, the bus stamps every received frame with the wall clock, so the simulator's E2E age
+check and its command watchdog run on the wall clock (``time.time()``), in bus seconds:
+at ``--speed 20`` a 3-cycle watchdog still waits 0.3 s of wall clock for the runtime's demand.
+
+Nothing on the bus stops the loop: a datagram or frame that python-can cannot receive or
+the DBC cannot decode is counted (``undecodable``, in ``SIM_STATUS``) and skipped.
+
+The simulator never outlives its parent (:class:`ParentWatch`): on Linux it asks the kernel
+for SIGHUP when its parent dies (``PR_SET_PDEATHSIG``), and it also polls its parent's pid
+(``--parent-pid PID``, default: the parent it was started by). When the parent is gone the
+plants go to their safe state (valves open, engine idle), ``SAFE_STATE`` = ``PARENT_LOST``
+goes out for :data:`PARENT_LOST_REPORT_S`, and the process exits.
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import logging
 import math
+import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -30,12 +46,59 @@ from cell.bus.dbc import CellDatabase
 from cell.core.errors import ConfigError
 from cell.plant.composition import Composition
 from cell.core.settings import Settings, add_sim_options
-from cell.sim.simulator import Simulator
+from cell.sim.simulator import DEMAND_TIMEOUT_CYCLES, Simulator
 
 logger = logging.getLogger(__name__)
 
 #: Signals whose changes the live simulator logs, with their DBC value names.
-_WATCHED = ("ENGINE_STATE", "TRIP_REASON")
+_WATCHED = ("ENGINE_STATE", "TRIP_REASON", "RESET_STATE", "SAFE_STATE")
+#: How long the simulator reports its safe state on the bus after its parent died, s.
+PARENT_LOST_REPORT_S = 2.0
+#: How often the live loop polls its parent, s.
+PARENT_POLL_S = 0.05
+#: Linux prctl option: signal this process when its parent dies.
+_PR_SET_PDEATHSIG = 1
+
+
+class ParentWatch:
+    """Notices the death of the process that started the simulator.
+
+    Parameters
+    ----------
+    parent_pid:
+        The parent to watch; ``None``: the process's parent at start (none when that is
+        pid 1, i.e. already orphaned or run as a container's init).
+
+    ``lost()`` is true once the parent has died: the kernel's ``PR_SET_PDEATHSIG`` signal
+    (SIGHUP, Linux, set by :meth:`arm`) sets it at once, and ``os.getppid()`` differing from
+    the watched pid (the simulator was re-parented) sets it at the next poll.
+    """
+
+    def __init__(self, parent_pid: int | None = None) -> None:
+        ppid = os.getppid()
+        self.pid = parent_pid if parent_pid is not None else (ppid if ppid > 1 else None)
+        self._signalled = False
+
+    def arm(self) -> None:
+        """Ask the kernel for SIGHUP on the parent's death (Linux; main thread only)."""
+        if self.pid is None or threading.current_thread() is not threading.main_thread():
+            return
+        signal.signal(signal.SIGHUP, self._on_signal)
+        if sys.platform.startswith("linux"):
+            try:
+                libc = ctypes.CDLL(None, use_errno=True)
+                if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGHUP), 0, 0, 0) != 0:
+                    logger.debug("prctl(PR_SET_PDEATHSIG) failed: errno %d", ctypes.get_errno())
+            except (OSError, AttributeError) as exc:  # no libc prctl: polling only
+                logger.debug("no prctl: %s", exc)
+
+    def _on_signal(self, signum: int, frame: object) -> None:
+        self._signalled = True
+
+    def lost(self) -> bool:
+        if self.pid is None:
+            return False
+        return self._signalled or os.getppid() != self.pid
 
 
 def build(settings: Settings, db: CellDatabase | None = None, t0: float = 0.0) -> Simulator:
@@ -43,7 +106,9 @@ def build(settings: Settings, db: CellDatabase | None = None, t0: float = 0.0) -
     s = settings.for_simulator()
     profile = registry.engine_profile(s.engine)
     db = db or dbc_mod.load([*registry.DBC_FILES, *s.dbc])
-    return Simulator(profile.build(s), db, t0)
+    cycles = s.demand_timeout_cycles
+    return Simulator(profile.build(s), db, t0,
+                     demand_timeout_cycles=DEMAND_TIMEOUT_CYCLES if cycles is None else cycles)
 
 
 def simulate(db: CellDatabase, plant: Composition | str = "rated", seed: int = 0,
@@ -87,7 +152,12 @@ def _watch(sim: Simulator, seen: dict[str, float]) -> None:
 
 
 def _drain(bus: CellBus, sim: Simulator, until: float | None) -> None:
-    """Receive and route frames until ``until`` (monotonic), or only what is queued (None)."""
+    """Receive and route frames until ``until`` (monotonic), or only what is queued (None).
+
+    A datagram python-can cannot turn into a frame (its receive path raises) is counted as
+    undecodable and skipped; so is a frame the simulator cannot decode.
+    """
+    errors = 0
     while True:
         if until is None:
             timeout = 0.0
@@ -95,19 +165,36 @@ def _drain(bus: CellBus, sim: Simulator, until: float | None) -> None:
             timeout = until - time.monotonic()
             if timeout <= 0.0:
                 return
-        msg = bus.recv(timeout=timeout)
+        try:
+            msg = bus.recv(timeout=timeout)
+        except Exception as exc:  # noqa: BLE001 - nothing from the bus may stop the plant
+            sim.undecodable += 1
+            errors += 1
+            if errors & (errors - 1) == 0:
+                logger.warning("skipped an undecodable datagram (%d so far): %s: %s",
+                               sim.undecodable, type(exc).__name__, exc)
+            if until is None and errors >= 64:
+                return  # a receive path that only fails: back to stepping the plant
+            continue
         if msg is None:
             return
-        sim.receive(msg)
+        try:
+            sim.receive(msg)
+        except Exception as exc:  # noqa: BLE001
+            sim.undecodable += 1
+            logger.warning("skipped a frame the simulator cannot take (%d so far): %s: %s",
+                           sim.undecodable, type(exc).__name__, exc)
 
 
 def run(bus: CellBus, settings: Settings, stop_event: threading.Event | None = None,
-        db: CellDatabase | None = None, counts: dict[str, int] | None = None) -> Composition:
+        db: CellDatabase | None = None, counts: dict[str, int] | None = None,
+        parent: ParentWatch | None = None) -> Composition:
     """Run the engine of ``settings`` on ``bus`` in real time (or ``settings.speed`` faster).
 
     Frames are stamped with the wall-clock start time plus simulation time, so at speed 1 a
     frame's timestamp is its send time. Stops after ``settings.duration`` simulation seconds
-    (``None``: until ``stop_event`` is set). Returns the composition in its final state.
+    (``None``: until ``stop_event`` is set), or :data:`PARENT_LOST_REPORT_S` after
+    ``parent`` died. Returns the composition in its final state.
     ``counts["sent"]`` (when given) counts the frames put on the bus, as they go.
     """
     speed = settings.speed
@@ -115,6 +202,7 @@ def run(bus: CellBus, settings: Settings, stop_event: threading.Event | None = N
         raise ConfigError(f"--speed must be a number > 0, got {speed}")
     sim = build(settings, db)
     sim.t0 = time.time()
+    sim.clock = time.time  # the clock the bus stamps received frames with
     n_total = None if settings.duration is None else round(settings.duration / sim.dt)
     mono0 = time.monotonic()
     logger.info("sim started on %s: %s, speed x%g%s", bus.spec, _describe(sim), speed,
@@ -123,15 +211,28 @@ def run(bus: CellBus, settings: Settings, stop_event: threading.Event | None = N
     _watch(sim, seen)
     counts = counts if counts is not None else {}
     counts.setdefault("sent", 0)
+    lost_at = None
+    next_poll = 0.0
     while True:
         if stop_event is not None and stop_event.is_set():
             break
         if n_total is not None and sim.k >= n_total:
             break
+        now = time.monotonic()
+        if parent is not None and lost_at is None and now >= next_poll:
+            next_poll = now + PARENT_POLL_S
+            if parent.lost():
+                lost_at = now
+                sim.parent_lost()
+                logger.warning("at t=%.2f s the parent process %s died: safe state (valves "
+                               "open, engine idle); exiting in %g s", sim.t, parent.pid,
+                               PARENT_LOST_REPORT_S)
+        if lost_at is not None and now - lost_at >= PARENT_LOST_REPORT_S:
+            break
         due = mono0 + sim.t / speed
-        if time.monotonic() < due:
+        if now < due:
             # idle until the next step is due, applying demands as they arrive
-            _drain(bus, sim, min(due, time.monotonic() + 0.05))
+            _drain(bus, sim, min(due, now + PARENT_POLL_S))
             continue
         frames = sim.frames()
         for msg in frames:
@@ -140,6 +241,8 @@ def run(bus: CellBus, settings: Settings, stop_event: threading.Event | None = N
         _drain(bus, sim, None)
         sim.step()
         _watch(sim, seen)
+    if sim.e2e.discarded or sim.undecodable:
+        logger.info("sim discarded %s; undecodable %d", sim.discards(), sim.undecodable)
     return sim.plant
 
 
@@ -228,16 +331,26 @@ def main(args: argparse.Namespace, settings: Settings | None = None,
         logger.info("wrote %d frames to %s", n, args.out)
         return 0
     build(sim_settings)  # refuse a bad engine, duty or DBC before opening the bus
+    parent = None
+    if stop_event is None:  # a process of its own, not a thread of `up --bus virtual`
+        parent = ParentWatch(getattr(args, "parent_pid", None))
+        parent.arm()
     bus = open_bus(settings.bus)
     if threading.current_thread() is threading.main_thread():
         # SIGTERM (testcell up stopping, docker stop) ends the run like Ctrl-C: bus closed
         signal.signal(signal.SIGTERM, _interrupt)
     counts = {"sent": 0}
     try:
-        run(bus, sim_settings, stop_event=stop_event, counts=counts)
+        run(bus, sim_settings, stop_event=stop_event, counts=counts, parent=parent)
     except KeyboardInterrupt:
         logger.info("sim stopped")
     finally:
         bus.shutdown()
         logger.info("sim sent %d frames", counts["sent"])
+    if parent is not None and parent.lost():
+        # an orphan leaves at once: nothing is left to flush but the log, and the
+        # interpreter's teardown of a loaded process can take seconds on a busy machine
+        logger.info("sim exits: its parent died")
+        logging.shutdown()
+        os._exit(0)
     return 0

@@ -4,18 +4,38 @@ The DBC says everything: the simulator (node ``SIM``) sends every message whose 
 ``SIM`` and whose signals its plants produce, at the message's ``GenMsgCycleTime``; it
 receives every message with a signal addressed to ``SIM`` (demands, scenario commands) and
 hands each such signal to the plant that consumes it.
+
+It stands for the engine controller and the valve actuators, so it trusts no frame blindly:
+
+- **Integrity.** A frame of an E2E-protected message (:mod:`cell.bus.e2e`) with a wrong CRC,
+  a repeated or skipped alive counter, or older than one cycle of its message on the
+  simulator's clock is discarded and counted by message and reason (``SIM_E2E`` frame,
+  the log). A frame of a routed message that does not decode is counted as undecodable.
+- **Command watchdog.** Each E2E demand the runtime sends cyclically (``VALVE_DEMAND``) is
+  watched once its first valid frame has arrived: when no valid frame came for
+  ``demand_timeout_cycles`` of its cycles, the plants go to their safe state (valves fully
+  open, engine at idle) and ``SAFE_STATE`` says ``DEMAND_TIMEOUT``; they leave it when valid
+  demand resumes. A cell whose controllers never sent a demand (disabled, ``--no-controllers``)
+  is not in fault, so the watchdog stays unarmed; a controller switched off after sending is
+  a demand that stopped, and the cell goes safe until demand resumes.
+- **Parent lost** (:meth:`Simulator.parent_lost`): safe state for good, ``PARENT_LOST``.
+
+The simulator's own status (``SIM_STATUS``, ``SIM_E2E``) goes out at its cycle time like any
+plant's frame.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 
 import can
 import numpy as np
 from cantools.database.can import Message
 
 from cell.bus.dbc import CellDatabase, FrameDecodeError
+from cell.bus.e2e import E2ESpec, Receiver
 from cell.core.errors import ConfigError
 from cell.plant.composition import Composition
 from cell.runtime.samples import SampleLayout, find_sample_streams
@@ -25,6 +45,13 @@ log = logging.getLogger(__name__)
 
 #: The simulator's node name in the DBC files.
 NODE = "SIM"
+#: The node whose cyclic demands the command watchdog watches.
+DEMANDER = "RUNTIME"
+#: ``SAFE_STATE`` values (DBC ``VAL_ 262 SAFE_STATE``).
+SAFE_NONE, SAFE_DEMAND_TIMEOUT, SAFE_PARENT_LOST = 0, 1, 2
+#: Default of ``--demand-timeout-cycles``.
+DEMAND_TIMEOUT_CYCLES = 3.0
+_COUNT_MAX = 65535  # the status frames' counters saturate
 
 
 class Simulator:
@@ -38,6 +65,12 @@ class Simulator:
         The DBC database.
     t0:
         Bus time of simulation time 0, s (frames are stamped ``t0 + t``).
+    demand_timeout_cycles:
+        Cycles of a watched demand without a valid frame before the safe state.
+    clock:
+        The bus time now, s, on the clock of received frames' timestamps; default
+        ``t0 + t`` (lockstep). The live loop passes the wall clock that the bus stamps
+        received frames with.
 
     Raises
     ------
@@ -46,17 +79,30 @@ class Simulator:
         plants produce (the message names the missing signals).
     """
 
-    def __init__(self, plant: Composition, db: CellDatabase, t0: float = 0.0) -> None:
+    def __init__(self, plant: Composition, db: CellDatabase, t0: float = 0.0,
+                 demand_timeout_cycles: float = DEMAND_TIMEOUT_CYCLES,
+                 clock: Callable[[], float] | None = None) -> None:
+        if not demand_timeout_cycles > 0 or not math.isfinite(demand_timeout_cycles):
+            raise ConfigError(f"--demand-timeout-cycles must be a number > 0, got "
+                              f"{demand_timeout_cycles}")
         self.plant = plant
         self.db = db
         self.t0 = float(t0)
+        self.clock = clock if clock is not None else (lambda: self.t0 + self.plant.t)
+        self.e2e = Receiver()
+        self.undecodable = 0
+        self.safe_state = SAFE_NONE
         self.schedule: list[tuple[Message, int, tuple[str, ...]]] = []
+        own = self._own = self._own_signals()
+        self._own_messages: set[str] = set()
         skipped = []
         for m in db.messages:
             if NODE not in (m.senders or []):
                 continue
             names = tuple(s.name for s in m.signals)
-            missing = plant.missing(names)
+            missing = [n for n in plant.missing(names) if n not in own]
+            if any(n in own for n in names):
+                self._own_messages.add(m.name)
             if len(missing) == len(names):
                 skipped.append(m.name)  # another engine's frame
                 continue
@@ -92,6 +138,26 @@ class Simulator:
                            if NODE in (s.receivers or []) and s.name in plant.external)
             if to_sim:
                 self.routes[(m.frame_id, m.is_extended_frame)] = (m, to_sim)
+        #: watched demands: message name -> (timeout s, bus time of the last valid frame)
+        self.watched: dict[str, list] = {}
+        for m, _ in self.routes.values():
+            spec = db.e2e.get(m.name)
+            if spec is not None and spec.cycle_s and DEMANDER in (m.senders or []):
+                self.watched[m.name] = [demand_timeout_cycles * spec.cycle_s, None]
+
+    def _own_signals(self) -> dict[str, Callable[[], float]]:
+        """The signals of the simulator's own status frames, by name."""
+        def count(reason: str) -> Callable[[], float]:
+            return lambda: float(min(self.e2e.by_reason()[reason], _COUNT_MAX))
+        return {
+            "SAFE_STATE": lambda: float(self.safe_state),
+            "SIM_UNDECODABLE": lambda: float(min(self.undecodable, _COUNT_MAX)),
+            "E2E_DISCARDED": lambda: float(min(sum(self.e2e.discarded.values()), _COUNT_MAX)),
+            "E2E_CRC_ERRORS": count("crc"),
+            "E2E_REPEATED": count("repeated"),
+            "E2E_SKIPPED": count("skipped"),
+            "E2E_TOO_OLD": count("too_old"),
+        }
 
     @property
     def k(self) -> int:
@@ -118,8 +184,11 @@ class Simulator:
         if not due:
             return out
         values = self.plant.signals
+        own = self._own
         ts = self.t0 + self.plant.t
-        return out + [self.db.encode(m.name, {s: values[s] for s in names}, ts) for m, names in due]
+        return out + [self.db.encode(m.name, {s: own[s]() if s in own else values[s] for s in names}
+                                     if m.name in self._own_messages else
+                                     {s: values[s] for s in names}, ts) for m, names in due]
 
     def _stream_frames(self) -> list[can.Message]:
         """Frames of the stream samples produced so far, ``n`` whole samples per frame.
@@ -162,22 +231,81 @@ class Simulator:
     def receive(self, msg: can.Message) -> bool:
         """Hand a received frame's signals to the plants that consume them; True if routed.
 
-        Frames that do not decode, that are not addressed to the simulator, or whose values
-        are not finite are ignored (a bus carries all kinds of traffic).
+        Frames not addressed to the simulator are ignored (a bus carries all kinds of
+        traffic); a routed frame that does not decode is counted (``undecodable``), one that
+        fails its E2E check is discarded and counted, non-finite values are dropped.
         """
         route = self.routes.get((msg.arbitration_id, bool(msg.is_extended_id)))
         if route is None:
             return False
         message, names = route
         try:
-            values = self.db.decode_payload(self.db.check(msg), bytes(msg.data))
-        except FrameDecodeError:
+            data = bytes(msg.data)
+            values = self.db.decode_payload(self.db.check(msg), data)
+        except (FrameDecodeError, TypeError, ValueError):
+            self.undecodable += 1
             return False
+        spec = self.db.e2e.get(message.name)
+        now = self.clock()
+        if spec is not None and not self._valid(spec, data, values, msg, now):
+            return False
+        watch = self.watched.get(message.name)
+        if watch is not None:
+            watch[1] = now
+        commands = {}
         for name in names:
             v = values.get(name)
-            if v is not None and math.isfinite(v):
+            if v is None or not math.isfinite(v):
+                continue
+            if name in self.plant.commander:
+                commands[name] = v
+            else:
                 self.plant.set_input(name, v)
+        if commands:
+            self.plant.command(commands)
         return True
 
+    def _valid(self, spec: E2ESpec, data: bytes, values: dict[str, float], msg: can.Message,
+               now: float) -> bool:
+        age = now - float(msg.timestamp or 0.0)
+        reason = self.e2e.check(spec, data, int(values[spec.counter]), age)
+        if reason is None:
+            return True
+        n = self.e2e.discarded[(spec.message, reason)]
+        if n & (n - 1) == 0:  # the 1st, 2nd, 4th, 8th ... of each kind: a flood stays readable
+            log.warning("discarded %s frame #%d for %s (age %.3f s, counter %d); discarded so "
+                        "far: %s", spec.message, n, reason, age, int(values[spec.counter]),
+                        self.discards())
+        return False
+
+    def discards(self) -> str:
+        """The frames discarded so far, by message and reason, as one line."""
+        return ", ".join(f"{m} {r} {n}" for (m, r), n in sorted(self.e2e.discarded.items())) \
+            or "none"
+
+    def watchdog(self) -> None:
+        """Enter or leave the safe state as the watched demands say (see the module notes)."""
+        if self.safe_state == SAFE_PARENT_LOST:
+            return
+        now = self.clock()
+        late = [name for name, (timeout, last) in self.watched.items()
+                if last is not None and now - last > timeout + 1e-9]
+        if late and self.safe_state == SAFE_NONE:
+            log.warning("at t=%.2f s no valid %s for %.2f s: safe state (valves open, engine "
+                        "idle)", self.t, ", ".join(late), now - self.watched[late[0]][1])
+            self.safe_state = SAFE_DEMAND_TIMEOUT
+            self.plant.set_safe(True)
+        elif not late and self.safe_state == SAFE_DEMAND_TIMEOUT:
+            log.info("at t=%.2f s valid demand resumed: safe state left", self.t)
+            self.safe_state = SAFE_NONE
+            self.plant.set_safe(False)
+
+    def parent_lost(self) -> None:
+        """The process that commands this simulator died: safe state for good."""
+        if self.safe_state != SAFE_PARENT_LOST:
+            self.safe_state = SAFE_PARENT_LOST
+            self.plant.set_safe(True)
+
     def step(self) -> None:
+        self.watchdog()
         self.plant.step()

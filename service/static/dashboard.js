@@ -277,6 +277,22 @@ async function health() {
   $("health").textContent = `bus ${h.bus} · ${h.frames_per_s.toFixed(0)} frames/s · bus time ` +
     `${h.bus_time === null ? "–" : h.bus_time.toFixed(1)} s · decode errors ` +
     Object.entries(h.decode_errors).map(([k, v]) => `${k} ${v}`).join(", ");
+  $("trip").hidden = !h.trip;
+  if (h.trip) $("trip-text").textContent = `engine tripped: ${h.trip.reason} (since bus time ${h.trip.since.toFixed(1)} s)`;
+}
+
+// the two-step trip reset: the operator confirms, then the page sends the request and, with
+// the challenge it returns, the confirm (the simulator wants both within 2 s)
+async function resetTrip() {
+  const msg = $("reset-msg");
+  if (!window.confirm("Reset the engine trip? The simulator clears it only if its cause has cleared " +
+                      "(back-pressure below the limit).")) return;
+  const r = await api("POST", "/engine/reset", {});
+  if (!r.ok) { msg.className = "msg error"; msg.textContent = `refused (${r.status}): ${errorText(r.data)}`; return; }
+  const c = await api("POST", "/engine/reset/confirm", {challenge: r.data.challenge});
+  msg.className = c.ok ? "msg ok" : "msg error";
+  msg.textContent = c.ok ? "reset sent (request and confirm)" : `refused (${c.status}): ${errorText(c.data)}`;
+  setTimeout(health, 500);
 }
 
 function fmtValue(v) { return v === null || v === undefined ? "–" : Math.abs(v) >= 1e5 || (v !== 0 && Math.abs(v) < 1e-3) ? v.toExponential(3) : Number(v.toPrecision(5)).toString(); }
@@ -487,6 +503,7 @@ TC.bench = (traces, seconds, rateHz, draws) => {
 // -- start ---------------------------------------------------------------------------------------
 async function main() {
   setupToolbar();
+  $("reset-trip").onclick = resetTrip;
   await discover();
   buildPanels();
   buildTuning();

@@ -3,14 +3,15 @@
 - a script reading an input that no channel provides is accepted with the input named;
 - a deleted script's errors leave ``/health`` with it;
 - ``/health`` turns ``degraded`` (with the reason) when the bus falls silent;
-- a trip shows in ``/health`` with its reason, and ``POST /engine/reset`` (or a scenario
-  frame of the same ENGINE_RESET signal) resets it, in a simulator fed through the bus frames.
+- a trip shows in ``/health`` with its reason, and the two steps ``POST /engine/reset`` then
+  ``POST /engine/reset/confirm`` (or the same two steps as scenario frames) reset it, in a
+  simulator fed through the bus frames; a single frame does not.
 """
 
 
-import can
 from tests.helpers.client import local_client
 
+from cell.bus.scenario import scenario_frames
 from cell.core import registry
 from cell.app.cell import Cell
 from cell.estimators.backpressure import native_filters
@@ -75,7 +76,7 @@ def test_health_is_degraded_with_the_reason_when_the_bus_falls_silent(db, tmp_pa
 
 def test_trip_is_shown_and_reset_over_http_and_by_scenario_frame(db, tmp_path):
     """The simulator and runtime exchange frames only (as on the bus); the valve is shut so
-    the back-pressure trips the engine; /health shows it; POST /engine/reset clears it."""
+    the back-pressure trips the engine; /health shows it; the two-step reset clears it."""
     settings = Settings.build({"engine": "large-diesel", "duty": "rated", "valve": 5.0,
                                "bp_limit": 250.0},
                               environ={}).for_simulator()
@@ -97,28 +98,36 @@ def test_trip_is_shown_and_reset_over_http_and_by_scenario_frame(db, tmp_path):
     assert h["status"] == "degraded" and any("engine tripped: EXH_BP_LIMIT" in r for r in h["reasons"])
     exhaust = sim.plant.plant("exhaust")
     assert exhaust.state == TRIPPED
-    # the valve opens (a demand frame, as a controller or an operator would send), then reset
-    sim.receive(db.encode("VALVE_DEMAND", {"VALVE_DEMAND_L": 100.0, "VALVE_DEMAND_R": 100.0}))
-    run(10.0)
+    run(10.0)  # the engine runs down, so the trip's cause clears
     assert c.get("/health").json()["trip"] is not None  # a trip holds until reset
+    # one frame never resets: a lone confirm (any value) is refused
+    rt.send([db.encode("ENGINE_CMD", {"ENGINE_RESET_REQ": 0, "ENGINE_RESET_CONFIRM": 77}, rt.now)])
+    run(1.0)
+    assert exhaust.state == TRIPPED and rt.channels["RESET_STATE"].value == 4  # no request
     r = c.post("/engine/reset", json={})
-    assert r.status_code == 200 and r.json()["sent"] == {"ENGINE_RESET": 1}
+    assert r.status_code == 200
+    challenge = r.json()["challenge"]
+    assert r.json()["sent"] == {"ENGINE_RESET_REQ": challenge} and r.json()["window_s"] == 2.0
+    run(1.0)
+    assert exhaust.state == TRIPPED and rt.channels["RESET_STATE"].value == 1  # pending
+    wrong = c.post("/engine/reset/confirm", json={"challenge": challenge % 65535 + 1})
+    assert wrong.status_code == 422 and "challenge" in wrong.text
+    r = c.post("/engine/reset/confirm", json={"challenge": challenge})
+    assert r.status_code == 200 and r.json()["sent"] == {"ENGINE_RESET_CONFIRM": challenge}
     run(2.0)
     h = c.get("/health").json()
     assert h["trip"] is None and h["status"] == "ok", h
     assert exhaust.state != TRIPPED and rt.channels["ENGINE_STATE"].value == 1
-    # trip again, then reset with a scenario frame (what `testcell scenario engine_reset=N` sends)
-    sim.receive(db.encode("VALVE_DEMAND", {"VALVE_DEMAND_L": 5.0, "VALVE_DEMAND_R": 5.0}))
+    assert rt.channels["RESET_STATE"].value == 2
+    # trip again, then reset with the same two steps as scenario frames (what `testcell
+    # scenario engine_reset_req=N`, then `engine_reset_confirm=N`, send)
     run(20.0)
     assert c.get("/health").json()["trip"] is not None
-    sim.receive(db.encode("VALVE_DEMAND", {"VALVE_DEMAND_L": 100.0, "VALVE_DEMAND_R": 100.0}))
     run(10.0)
-    scenario = db.encode("ENGINE_CMD", {"ENGINE_RESET": 7}, rt.now)
-    sim.receive(scenario)
-    rt.ingest(can.Message(timestamp=rt.now, arbitration_id=scenario.arbitration_id,
-                          data=scenario.data, is_extended_id=False))
-    run(2.0)
+    for key in ("engine_reset_req", "engine_reset_confirm"):
+        rt.send(scenario_frames(db, {key: 4321}, rt.now))
+        run(0.5)
+    # reset (the shut valve trips the engine again within seconds of its restart)
+    assert rt.channels["RESET_STATE"].value == 2 and rt.channels["ENGINE_STATE"].value == 1
     assert c.get("/health").json()["trip"] is None
-    # the next HTTP reset continues from the counter seen on the bus, so it is a new value
-    assert c.post("/engine/reset", json={}).json()["sent"] == {"ENGINE_RESET": 8}
     assert registry  # the engine profile came from the registry

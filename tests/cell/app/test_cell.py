@@ -15,7 +15,8 @@ from cell.core.errors import UnknownBlockError
 from cell.core.registry import BlockFamily
 from cell.estimators.backpressure import native_filters
 from cell.runtime.scheduler import Runtime
-from cell.runtime.supervision import RESET_SIGNAL
+from cell.core.errors import ParamError
+from cell.runtime.supervision import CONFIRM_SIGNAL, REQUEST_SIGNAL
 
 
 def feed(rt, db, t0, t1):
@@ -78,6 +79,7 @@ CALLS = {
     "send": lambda c: c.send([]),
     "trip": lambda c: c.trip(),
     "reset_trip": lambda c: c.reset_trip(),
+    "confirm_reset": lambda c: c.confirm_reset(c.reset_trip()["challenge"]),
     "health": lambda c: c.health(),
     "frames_by_id": lambda c: c.frames_by_id(),
     "metrics": lambda c: c.metrics(),
@@ -131,7 +133,7 @@ def test_readings_are_value_status_and_time_at_a_bus_time(cell):
 def test_send_puts_the_frames_in_the_outbox(cell, db):
     rt = cell.runtime
     rt.take_outbox()
-    frames = [db.encode(db.signals[RESET_SIGNAL].message, {RESET_SIGNAL: 7}, 1.0)]
+    frames = [db.encode("ENGINE_CMD", {REQUEST_SIGNAL: 7, CONFIRM_SIGNAL: 0}, 1.0)]
     cell.send(frames)
     assert rt.take_outbox() == frames
 
@@ -143,18 +145,34 @@ def test_send_scenario_encodes_at_the_bus_time_and_sends(db):
     sent = c.send_scenario({"osc": 0.5})
     out = rt.take_outbox()
     expect = scenario_frames(db, {"osc": 0.5}, rt.now)
-    assert [(m.arbitration_id, bytes(m.data), m.timestamp) for m in out] == \
-        [(m.arbitration_id, bytes(m.data), m.timestamp) for m in expect]
+
+    def payload(m):  # the E2E counter differs from frame to frame, so the CRC does too
+        message, values = db.decode(m)
+        return m.arbitration_id, m.timestamp, {k: values[k] for k in db.payload_signals(message)}
+    assert [payload(m) for m in out] == [payload(m) for m in expect]
     assert sent[0]["message"] == "SCENARIO_TWC" and sent[0]["signals"]["OSC"] == pytest.approx(0.5)
     assert {k["key"] for k in c.scenario_keys()} >= {"osc"}
 
 
-def test_reset_trip_sends_a_new_counter_value(cell):
+def test_a_reset_is_a_request_with_a_random_challenge_then_its_confirm(cell):
     rt = cell.runtime
     rt.take_outbox()
-    assert cell.reset_trip() == 1 and cell.reset_trip() == 2
-    sent = [rt.db.decode(m)[1][RESET_SIGNAL] for m in rt.take_outbox()]
-    assert sent == [1, 2]
+    first = cell.reset_trip()
+    second = cell.reset_trip()  # a newer request replaces the older
+    assert first["window_s"] == 2.0 and 1 <= first["challenge"] <= 65535
+    sent = [rt.db.decode(m)[1] for m in rt.take_outbox()]
+    assert [(v[REQUEST_SIGNAL], v[CONFIRM_SIGNAL]) for v in sent] == \
+        [(first["challenge"], 0), (second["challenge"], 0)]
+    wrong = second["challenge"] % 65535 + 1
+    for bad in (wrong, "1", 1.0, True, None):
+        with pytest.raises(ParamError, match="challenge"):
+            cell.confirm_reset(bad)
+    assert rt.take_outbox() == []  # a refused confirm sends nothing, the request stays
+    assert cell.confirm_reset(second["challenge"]) == second["challenge"]
+    sent = [rt.db.decode(m)[1] for m in rt.take_outbox()]
+    assert [(v[REQUEST_SIGNAL], v[CONFIRM_SIGNAL]) for v in sent] == [(0, second["challenge"])]
+    with pytest.raises(ParamError, match="no reset request is pending"):
+        cell.confirm_reset(second["challenge"])  # one confirm per request
     assert cell.trip() is None  # no ENGINE_STATE on this bus
 
 

@@ -25,6 +25,14 @@ def db():
     return load([RIG])
 
 
+def _payload(db, msg):
+    """A command frame's values but its E2E counter and CRC, whose CRC is checked."""
+    message, values = db.decode(msg)
+    spec = db.e2e[message.name]
+    assert msg.data[spec.crc_byte] == spec.crc_of(bytes(msg.data))
+    return {k: values[k] for k in db.payload_signals(message)}
+
+
 def test_keys_are_the_signals_scenario_sends_to_sim(db):
     keys = scenario_keys(db)
     assert {"osc", "rig_level", "rig_gain", "rig_mode"} <= set(keys)
@@ -42,12 +50,13 @@ def test_a_command_sets_the_given_keys_and_the_start_value_of_the_others(db):
     assert values == {"RIG_LEVEL": 42.5, "RIG_GAIN": 2.5, "RIG_MODE": 2.0}
     two = scenario_frames(db, {"osc": 0.6, "rig_gain": 3})
     assert sorted(db.decode(f)[0].name for f in two) == ["RIG_SCENARIO", "SCENARIO_TWC"]
-    assert db.decode(two[0])[1] == {"OSC": 0.6}
+    assert _payload(db, two[0]) == {"OSC": 0.6}
 
 
 @pytest.mark.parametrize("values,field,needle", [
-    ({"osk": 0.5}, "osk", "is not a scenario key; known: engine_reset, fuel_offset_cyl_1, fuel_offset_cyl_2, "
-     "fuel_offset_cyl_3, fuel_offset_cyl_4, osc, rig_gain, rig_level, rig_mode"),
+    ({"osk": 0.5}, "osk", "is not a scenario key; known: engine_reset_confirm, engine_reset_req, "
+     "fuel_offset_cyl_1, fuel_offset_cyl_2, fuel_offset_cyl_3, fuel_offset_cyl_4, osc, rig_gain, "
+     "rig_level, rig_mode"),
     ({"osc": 2.5}, "osc", "must be within [0.05, 2] (the DBC range of OSC in SCENARIO_TWC), got 2.5"),
     ({"osc": 0.01}, "osc", "must be within [0.05, 2]"),
     ({"rig_level": -1}, "rig_level", "must be within [0, 100] %"),
@@ -55,7 +64,7 @@ def test_a_command_sets_the_given_keys_and_the_start_value_of_the_others(db):
     ({"rig_mode": "turbo"}, "rig_mode", "or one of OFF, SLOW, FAST"),
     ({"osc": float("nan")}, "osc", "must be finite"),
     ({"osc": True}, "osc", "must be a number, got bool"),
-    ({}, "body", "names no scenario key; known: engine_reset, fuel_offset_cyl_1"),
+    ({}, "body", "names no scenario key; known: engine_reset_confirm, engine_reset_req, fuel_offset_cyl_1"),
 ])
 def test_bad_commands_are_refused_by_name(db, values, field, needle):
     with pytest.raises(ParamError) as err:
@@ -80,7 +89,7 @@ def test_the_cli_sends_the_frame_on_the_bus(db, capsys):
         msg = peer.recv(timeout=1.0)
     finally:
         peer.shutdown()
-    assert db.decode(msg)[1] == {"OSC": 0.5}
+    assert _payload(db, msg) == {"OSC": 0.5}
     assert "sent SCENARIO_TWC (0x220)" in capsys.readouterr().out
 
 
@@ -89,7 +98,8 @@ def test_the_cli_refuses_an_unknown_key_or_a_value_out_of_range(capsys):
     peer = open_bus(channel)
     try:
         assert cli.main(["scenario", "osk=0.5", "--bus", channel]) == 2
-        assert "osk: is not a scenario key; known: engine_reset, fuel_offset_cyl_1" in capsys.readouterr().err
+        assert ("osk: is not a scenario key; known: engine_reset_confirm, engine_reset_req, "
+                "fuel_offset_cyl_1") in capsys.readouterr().err
         assert cli.main(["scenario", "osc=9", "--bus", channel]) == 2
         assert "osc: must be within [0.05, 2]" in capsys.readouterr().err
         assert peer.recv(timeout=0.2) is None  # nothing was sent
@@ -114,4 +124,4 @@ def test_post_scenario_queues_the_frame_and_refuses_bad_bodies(db):
     r = client.post("/scenario", json={"osc": 0.5})
     assert r.status_code == 200
     assert r.json()["sent"] == [{"message": "SCENARIO_TWC", "frame_id": 0x220, "signals": {"OSC": 0.5}}]
-    assert len(rt.outbox) == 1 and db.decode(rt.outbox[0])[1] == {"OSC": 0.5}
+    assert len(rt.outbox) == 1 and _payload(db, rt.outbox[0]) == {"OSC": 0.5}

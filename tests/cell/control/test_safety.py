@@ -118,14 +118,14 @@ def test_a_tripped_engine_puts_the_output_at_safe_without_windup(db):
 def run_trip(db, interlock):
     """si-free large diesel in lockstep, both loops on: a set-point above the protection's
     limit drives the engine into a trip; 3 s later the operator resets it (as POST
-    /engine/reset does) with the set-point back at 680. Returns the trip and re-trip times,
+    /engine/reset and its confirm do) with the set-point back at 680. Returns the trip and re-trip times,
     the demands during the trip and the integrator at the reset."""
     s = Settings.build({"engine": "large-diesel", "duty": "transient", "valve": 20.0},
                        environ={}).for_simulator()
     sim = simmod.build(s, db)
     rt = Runtime(db, [*native_filters(), *controllers("kalman", enable=True, setpoint=1400.0,
                                                        interlock=interlock)])
-    trip = reset = retrip = None
+    trip = reset = retrip = challenge = None
     during = []
     integral = None
     for k, _ in Lockstep(sim, rt).steps(round(30.0 / sim.dt)):
@@ -136,11 +136,13 @@ def run_trip(db, interlock):
             trip = t
         elif trip is not None and reset is None:
             during.append(rt.channels["VALVE_DEMAND_R"].value)
-            if t >= trip + 3.0:
+            if t >= trip + 3.0 and challenge is None:
                 integral = rt.blocks["PI_R"].integral
                 for b in "LR":
                     rt.set_params(f"PI_{b}", {"setpoint": 680.0})
-                supervision.reset_trip(rt)
+                challenge = supervision.request_reset(rt)  # the two steps of a reset
+            elif challenge is not None and t >= trip + 3.1 - 1e-9:
+                supervision.confirm_reset(rt, challenge)
                 reset = t
         elif reset is not None and t > reset + 0.3 and tripped and retrip is None:
             retrip = t

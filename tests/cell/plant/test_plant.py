@@ -351,6 +351,9 @@ def test_simulate_frames_decode_at_their_dbc_cycle_times():
     db = load()
     sim_messages = {m.name: m for m in db.db.messages if "SIM" in m.senders  # large-diesel's
                     and db.file_of(m.name).name in ("testcell.dbc", "diesel_airpath.dbc")}
+    # the simulator's own status, every engine's, and the diesel's reset status
+    # (dbc/cell_commands.dbc)
+    sim_messages.update({n: db.message(n) for n in ("SIM_STATUS", "SIM_E2E", "ENGINE_RESET_STATUS")})
     assert "VALVE_DEMAND" not in sim_messages
     times = defaultdict(list)
     values = defaultdict(list)
@@ -380,5 +383,6 @@ def test_simulate_is_deterministic_and_duration_defaults_to_the_cycle():
     assert a == b
     sched = duty_cycle("rated")
     n = sum(1 for _ in simulate(db, large_diesel(DutyCycle("short", sched.knots, 0.5), 0)))
-    # seed 004's frames, then the air path's (seed 002): sensors, P_EM, truth at 20 ms
-    assert n == 50 + 50 + 25 + 25 + 25 + 5 + 25 + 25 + 25
+    # seed 004's frames, then the air path's (seed 002): sensors, P_EM, truth at 20 ms, then
+    # the simulator's two status frames and the reset status at 100 ms
+    assert n == 50 + 50 + 25 + 25 + 25 + 5 + 25 + 25 + 25 + 5 + 5 + 5

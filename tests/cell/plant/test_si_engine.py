@@ -144,6 +144,8 @@ def test_sim_writes_the_si_turbo_frames_at_their_cycle_times(tmp_path):
                 "TWC_FLOW": 200, "TWC_TEMP": 20, "TRUTH_TWC_SOX": 20, "TRUTH_TWC": 20,
                 # the air path of issue 10 (dbc/si_airpath.dbc)
                 "AIRPATH_SENSORS": 200, "AIRPATH_ACTUATORS": 200, "AIRPATH_TRUTH_1": 200,
-                "AIRPATH_TRUTH_2": 200}
+                "AIRPATH_TRUTH_2": 200,
+                # the simulator's own status (dbc/cell_commands.dbc)
+                "SIM_STATUS": 20, "SIM_E2E": 20}
     assert dict(names) == expected
     assert SIEngine("steady").speed == 2000.0

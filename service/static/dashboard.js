@@ -156,7 +156,9 @@ function modelPanels(family, blocks) {
   // each observer (or other model): its outputs grouped by unit, with their truth and
   // same-unit inputs; a bar panel for each family of numbered outputs
   for (const o of blocks) {
-    const prefix = commonPrefix(o.outputs);
+    // the estimates' common prefix; the contract's confidence and sigma bands (NAME_CONF,
+    // X_SD) are named after the observer, not after a state, so they do not count
+    const prefix = commonPrefix(o.outputs.filter(n => !/_(CONF|SD)$/.test(n)));
     const units = new Map();
     for (const n of o.outputs) {
       const u = unitOf(n);

@@ -452,7 +452,9 @@ def test_observer_panels_are_built_from_the_api_grouped_by_unit(chromium, toy_pl
             p = Page(context, url)
             page = p.page
             panels = page.eval_on_selector_all(".panel", "els => els.map(e => e.dataset.panel)")
-            assert panels == ["observer-toy-m", "observer-toy-m/s"]
+            # one panel per unit, and the observer contract's confidence (no unit) on its own
+            assert panels == ["observer-toy-m", "observer-toy-m/s", "observer-toy-none"]
+            assert "TOY_CONF" in page.inner_text('[data-panel="observer-toy-none"] .legend')
             legend = page.inner_text('[data-panel="observer-toy-m/s"] .legend')
             assert "TOY_EST_VEL [m/s]" in legend and "TOY_VEL_TRUE [m/s]" in legend
             legend = page.inner_text('[data-panel="observer-toy-m"] .legend')

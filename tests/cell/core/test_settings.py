@@ -71,6 +71,9 @@ def test_up_hands_the_simulator_every_simulator_option(monkeypatch):
     settings = Settings.from_args(args, environ={}).for_simulator()
     up._start_sim_process(settings, private_bus())  # argv only: no bus is opened
     cmd = started[0]
+    if cmd[0] == "/bin/sh":  # up's wrapper that keeps Ctrl-C from the simulator: sh -c ... sh CMD
+        cmd = cmd[4:]
+    assert "--parent-pid" in cmd
     assert cmd[:3] == [sys.executable, "-m", "cell"] and "sim" in cmd
     child = cli.build_parser().parse_args(cmd[3:])
     got = Settings.from_args(child, environ={})

@@ -130,12 +130,12 @@ def record_design_frames(variant: Variant, seed: int, timing: Timing,
     sim = Simulator(si_turbo(cycle, seed, imbalance=(0.0,) * N_CYL,
                              cylinders=variant_params(variant.plant)), db)
     cyl, off = DESIGN_OFFSET
-    command = scenario_frames(db, {f"fuel_offset_cyl_{cyl}": off})
     frames, on = [], False
     for _k, got in Lockstep(sim).steps(round(cycle.duration / sim.dt), frames=True):
         frames.extend(got)
         if not on and sim.t >= timing.design_on - 1e-9:
-            for f in command:
+            # stamped at send time: the simulator discards a command older than its cycle
+            for f in scenario_frames(db, {f"fuel_offset_cyl_{cyl}": off}, sim.t0 + sim.t):
                 sim.receive(f)
             on = True
     return frames

@@ -167,6 +167,7 @@ def _drain(bus: CellBus, sim: Simulator, until: float | None) -> None:
                 return
         try:
             msg = bus.recv(timeout=timeout)
+            _count_skipped(bus, sim)
         except Exception as exc:  # noqa: BLE001 - nothing from the bus may stop the plant
             sim.undecodable += 1
             errors += 1
@@ -184,6 +185,16 @@ def _drain(bus: CellBus, sim: Simulator, until: float | None) -> None:
             sim.undecodable += 1
             logger.warning("skipped a frame the simulator cannot take (%d so far): %s: %s",
                            sim.undecodable, type(exc).__name__, exc)
+
+
+def _count_skipped(bus: CellBus, sim: Simulator) -> None:
+    """Add to the simulator's count the datagrams the bus itself skipped as undecodable
+    (:class:`~cell.bus.interface.CellBus` counts and skips them inside ``recv``)."""
+    skipped = getattr(bus, "undecodable", 0)
+    seen = getattr(sim, "bus_undecodable_seen", 0)
+    if skipped > seen:
+        sim.undecodable += skipped - seen
+        sim.bus_undecodable_seen = skipped
 
 
 def run(bus: CellBus, settings: Settings, stop_event: threading.Event | None = None,

@@ -23,7 +23,7 @@ from cell.app.assemble import build_runtime
 from cell.app.cell import Cell
 from cell.app.cli import add_runtime_options
 from cell.app.live import LiveCell
-from cell.app.tuning import TuningStore
+from cell.app.tuning import TuningStore, default_path
 from cell.bus.interface import open_bus, resolve
 from cell.core import registry
 from cell.core.errors import ConfigError
@@ -89,7 +89,8 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
     # uvicorn re-raises SIGTERM after its own graceful shutdown; turn it into SystemExit so
     # the finally below still stops the simulator and closes the bus
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
-    store = TuningStore(settings.state)
+    store = TuningStore(settings.state or default_path(settings.engine, str(spec),
+                                                       settings.port, settings.name))
     store.load()
     runtime, scripts = build_runtime(settings, store)
     if not settings.no_sim:
@@ -160,7 +161,11 @@ def add_arguments(up: argparse.ArgumentParser) -> None:
                          "... default) or stop the cell (up exits with status 3)")
     add_sim_options(up)
     up.add_argument("--state", default=None, type=Path,
-                    help="tuning file (default $XDG_STATE_HOME/testcell/tuning.json)")
+                    help="tuning file (default: this cell's own, "
+                         "$XDG_STATE_HOME/testcell/<name>/tuning.json)")
+    up.add_argument("--name", default=None,
+                    help="the cell's name, which names its state folder (default: engine, bus "
+                         "and API port, e.g. large-diesel_udp_multicast-239.74.163.2-43113_8000)")
     add_runtime_options(up)
 
 

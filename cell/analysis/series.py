@@ -89,6 +89,7 @@ def channel_series(
     rates: Any = None,
     progress: bool | None = None,
     db: Any = None,
+    maps: Any = (),
 ) -> Series:
     """Sample ``channel`` (and its truth) at every MED tick of a CAN log.
 
@@ -113,6 +114,8 @@ def channel_series(
         Progress bar over the log (tqdm); ``None`` lets tqdm decide, ``False`` hides it.
     db:
         The DBC codec (default: the cell's).
+    maps:
+        ``--map`` arguments (:mod:`cell.runtime.mapping`): a user's signal as ``channel``.
 
     Returns
     -------
@@ -133,6 +136,11 @@ def channel_series(
 
     rt = Runtime(db or load(), rates=rates)
     truth_name = f"{channel}_TRUE" if truth is None or truth is True else truth or None
+    if maps:
+        from cell.runtime import mapping
+
+        reads = {channel} | ({truth_name} if truth_name else set())
+        rt.set_map(mapping.check(mapping.parse_maps(maps), rt.db, reads))
     times: list[float] = []
     ys: list[float] = []
     ts: list[float] = []
@@ -189,6 +197,11 @@ def add_log_options(parser: argparse.ArgumentParser) -> None:
                         help="task rates; samples are taken at MED (default 10 Hz)")
     parser.add_argument("--dbc", action="append", default=None, metavar="PATH",
                         help="a DBC file or folder added to the cell's own (repeatable)")
+    parser.add_argument("--map", action="append", dest="maps", default=None,
+                        metavar="CHANNEL=SIGNAL|FILE",
+                        help="read --channel from your signal, converting known units "
+                             "(EXH_BP_R=DAQ_BP_R) or as given (EXH_BP_R=DAQ_BP_R*101.97+0); "
+                             "or a YAML/JSON mapping file (repeatable)")
 
 
 def load_series(args: argparse.Namespace) -> Series:
@@ -204,7 +217,7 @@ def load_series(args: argparse.Namespace) -> Series:
     return channel_series(
         args.log, args.channel, truth=truth, rates=Rates.parse(getattr(args, "cycle", None)),
         progress=False if getattr(args, "quiet", False) else None,
-        db=db,
+        db=db, maps=getattr(args, "maps", None) or (),
     )
 
 

@@ -11,6 +11,7 @@ from cell.bus.dbc import load
 from cell.core import registry
 from cell.core.errors import ConfigError
 from cell.core.settings import Settings
+from cell.runtime import mapping
 from cell.runtime.plausibility import read_file
 from cell.runtime.scheduler import Rates, Runtime
 from cell.scripts.manager import ScriptManager
@@ -44,6 +45,9 @@ def build_runtime(settings: Settings, store=None):
         shipped = settings.engine is None or registry.engine_profile(settings.engine).shipped_scripts
         for problem in scripts.load_defaults(shipped=shipped):
             log.warning("%s", problem)
+    if settings.maps:  # after every block: a mapping names a channel some block reads
+        for line in mapping.install(rt, settings.maps).describe():
+            log.info("mapped %s", line)
     return rt, scripts
 
 

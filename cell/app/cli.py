@@ -74,6 +74,11 @@ def add_runtime_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--design", action="append", dest="designs", default=None, metavar="FILE",
                    help="load a design file into the observer it names (repeatable; "
                         "testcell design NAME writes one)")
+    p.add_argument("--map", action="append", dest="maps", default=None,
+                   metavar="CELL_CHANNEL=SIGNAL|FILE",
+                   help="feed a channel the cell's blocks read from your signal, converting "
+                        "known units (EXH_BP_R=DAQ_BP_R: kPa to mmH2O) or as given "
+                        "(EXH_BP_R=DAQ_BP_R*101.97+0); or a YAML/JSON mapping file (repeatable)")
     add_block_options(p)  # the block sets' own: --osc-init, --bias-design, --no-controllers
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -21,8 +22,8 @@ from typing import TYPE_CHECKING, Any
 from cell.core.errors import ConfigError, ParamError, UnknownBlockError
 from cell.core.files import aside_path, remove_stale_temporaries, write_atomic, write_text_atomic
 
-__all__ = ["TuningStore", "aside_path", "default_path", "remove_stale_temporaries", "write_atomic",
-           "write_text_atomic"]
+__all__ = ["TuningStore", "aside_path", "cell_key", "default_path", "remove_stale_temporaries",
+           "state_root", "write_atomic", "write_text_atomic"]
 
 if TYPE_CHECKING:
     from cell.runtime.scheduler import Runtime
@@ -30,9 +31,28 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-def default_path() -> Path:
+def state_root() -> Path:
+    """Where the cells' state folders live: ``$XDG_STATE_HOME/testcell``
+    (``~/.local/state/testcell``)."""
     base = os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state"
-    return Path(base) / "testcell" / "tuning.json"
+    return Path(base) / "testcell"
+
+
+def cell_key(engine: str | None, bus: str | None, port: int | None,
+             name: str | None = None) -> str:
+    """The name of one cell's state folder: ``name`` when given (``--name``), else its
+    engine, bus and API port, e.g. ``large-diesel_udp_multicast-239.74.163.3-43114_8001``,
+    so two cells on one machine never share a tuning file unless told to."""
+    if name:
+        return name
+    parts = [engine or "cell", bus or "bus", str(port) if port is not None else "port"]
+    return "_".join(re.sub(r"[^A-Za-z0-9._-]+", "-", p).strip("-.") or "x" for p in parts)
+
+
+def default_path(engine: str | None = None, bus: str | None = None, port: int | None = None,
+                 name: str | None = None) -> Path:
+    """The default tuning file of one cell: ``<state root>/<cell key>/tuning.json``."""
+    return state_root() / cell_key(engine, bus, port, name) / "tuning.json"
 
 
 def _shape_problem(data: Any) -> str | None:

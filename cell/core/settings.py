@@ -33,6 +33,12 @@ from cell.core.errors import ConfigError
 from cell.core.options import Option, parse_bool, words
 
 ENV_PREFIX = "TESTCELL_"
+
+
+def _NAME_OK(name: str) -> bool:
+    import re
+
+    return re.fullmatch(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,63}", name) is not None
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 
 
@@ -101,7 +107,7 @@ _ENV_PARSERS: dict[str, Callable[[str], Any]] = {
     "demand_timeout_cycles": float, "plausibility": Path,
     "native": parse_bool, "no_sim": parse_bool, "protect_reads": parse_bool,
     "max_body": int, "max_script": int,
-    "dbc": words, "scripts": words, "plugins": words, "designs": words,
+    "dbc": words, "scripts": words, "plugins": words, "designs": words, "maps": words,
 }
 
 
@@ -134,10 +140,16 @@ class Settings:
     """A cell file of signal ranges and rate limits over the DBC's (:mod:`cell.runtime.plausibility`)."""
     designs: tuple[str, ...] = ()
     """Design files (``--design FILE``, repeatable), each naming its observer."""
+    maps: tuple[str, ...] = ()
+    """A user's signals on the cell's channels (``--map CELL_CHANNEL=SIGNAL`` or a mapping
+    file, repeatable; :mod:`cell.runtime.mapping`)."""
     # -- the service --------------------------------------------------------------------
     host: str = "127.0.0.1"
     port: int = 8000
     state: Path | None = None
+    """The tuning file; ``None``: the cell's own default (:func:`cell.app.tuning.default_path`)."""
+    name: str | None = None
+    """The cell's name: its default state folder (``--name``; else engine, bus and port)."""
     no_sim: bool = False
     token: str | None = field(default=None, repr=False)
     """Bearer token every state-changing request needs (``TESTCELL_TOKEN``; never a flag,
@@ -208,7 +220,7 @@ class Settings:
         """Settings from a parsed command line: every option that is a setting key."""
         known = set(cls.keys())
         given = {k: v for k, v in vars(args).items() if k in known}
-        for key in ("dbc", "scripts", "plugins", "designs"):
+        for key in ("dbc", "scripts", "plugins", "designs", "maps"):
             if given.get(key) is not None:
                 given[key] = tuple(str(p) for p in given[key])
         for key in ("native", "no_sim"):
@@ -224,6 +236,9 @@ class Settings:
                 raise ConfigError(f"TESTCELL_{key.upper()} must be 1024..67108864 bytes, got {value}")
         if self.token is not None and not self.token.strip():
             raise ConfigError("TESTCELL_TOKEN is empty: set a token, or unset the variable")
+        if self.name is not None and not _NAME_OK(self.name):
+            raise ConfigError(f"--name {self.name!r}: a cell's name is 1-64 letters, digits, "
+                              f"'.', '_' or '-', not starting with '.'")
         if self.log_level not in LOG_LEVELS:
             raise ConfigError(f"--log-level {self.log_level!r}: choose one of {', '.join(LOG_LEVELS)}")
         by_key = {o.key: o for o in SIM_OPTIONS}

@@ -34,6 +34,7 @@ from cell.runtime.faults import BlockFaults, describe
 from cell.runtime.health import (FRAME_ERROR_KINDS, MAX_COUNTED_IDS, MAX_UNKNOWN_IDS, OTHER_IDS,
                                  HealthCounters)
 from cell.runtime.channel_params import check_channel_params
+from cell.runtime.mapping import SignalMap
 from cell.runtime.plausibility import Plausibility
 from cell.runtime.samples import SampleLayout, SampleTracker, find_sample_streams
 from cell.runtime.senders import SenderWatch
@@ -214,6 +215,8 @@ class Runtime:
         self._streams: dict[tuple[int, bool], _SampleRoute] = {}
         self._stream_window = stream_window
         self._layouts: dict[str, SampleLayout] | None = None
+        #: a user's signals on the cell's channels (:mod:`cell.runtime.mapping`)
+        self.signal_map = SignalMap()
         for block in blocks:
             self.add_block(block)
 
@@ -331,6 +334,20 @@ class Runtime:
             check_channel_params(self, block, changes)  # a channel there is, of the right unit
             return block.set_params(changes)
 
+    def set_map(self, smap: SignalMap) -> None:
+        """Install checked mappings (:func:`cell.runtime.mapping.install`): each mapped
+        channel takes its unit from the mapping and goes stale on its source's cycle."""
+        with self.lock:
+            self._flush()
+            self.signal_map = smap
+            for e in smap.entries:
+                ch = self.store.add(e.target)
+                ch.unit = e.target_unit or ch.unit
+                cycle = self.db.message(e.message).cycle_time
+                ch.stale_after = max(2.5 * cycle / 1000.0 if cycle else 0.0,
+                                     self.store.stale_floor)
+                ch.value, ch.t, ch.status, ch.reason = None, None, STALE, "no value yet"
+
     # -- bus time -------------------------------------------------------------------
     @property
     def now(self) -> float | None:
@@ -419,6 +436,8 @@ class Runtime:
         self._pending.clear()  # in place: ingest_many holds a reference to this dict
         chans = self.store.by_name
         settle, counts = self.counters.gaps.settle, self.counters.frames_by_id
+        smap = self.signal_map
+        mapped, by_source = smap.targets, smap.by_source
         for key, (message, ts, data) in pending:
             settle(key, ts, counts.get(key))
             try:
@@ -430,6 +449,12 @@ class Runtime:
             for name, value in values.items():
                 if self.producer.get(name):
                     continue  # our own output seen on the bus (e.g. a second runtime's)
+                if mapped:
+                    fed = by_source.get((message.name, name))
+                    if fed is not None:
+                        self._map_value(fed, name, value, ts, bad)
+                    if name in mapped:
+                        continue  # a mapped channel reads its mapping only
                 ch = chans.get(name)
                 if ch is None:
                     ch = self.store.add(name)
@@ -437,6 +462,17 @@ class Runtime:
                     ch.update(value, ts)
                     if bad is not None and name in bad:
                         ch.mark(INVALID, bad[name])  # implausible: no block reads it
+
+    def _map_value(self, entries: list, name: str, value: float, ts: float,
+                   bad: dict[str, str] | None) -> None:
+        """A mapped source's value onto its channels, with its bus time and status."""
+        chans = self.store.by_name
+        for e in entries:
+            ch = chans[e.target]
+            if ch.t is None or ts >= ch.t:
+                ch.update(e.convert(value), ts)
+                if bad is not None and name in bad:
+                    ch.mark(INVALID, f"mapped from {e.source}: {bad[name]}")
 
     def advance(self, t: float) -> None:
         """Run every tick due at or before bus time ``t`` (end of a log, or a silent bus)."""

@@ -318,7 +318,10 @@ class PIController(Block):
 
     @property
     def on_bus(self) -> bool:  # type: ignore[override]
-        """A disabled controller keeps its demand off the bus: the valve holds its opening."""
+        """A disabled controller keeps its demand off the bus (the valve holds its opening)
+        unless another bank's enabled controller sends their shared frame: then the frame
+        carries this one's manual output (the tracked valve position, or ``manual``), or its
+        safe output while an input is bad."""
         return bool(self.enable)
 
     def _step(self, t: float, inputs: dict[str, float]) -> dict[str, float]:
@@ -381,10 +384,14 @@ class PIController(Block):
 
     def fallback(self, t: float, reason: str) -> dict[str, float] | None:
         """While an input is invalid or stale: hold the last output (integrator frozen) for
-        ``hold_s``, then go to the safe output. A disabled controller is off the bus and
-        its output is marked as usual."""
+        ``hold_s``, then go to the safe output. A disabled controller goes to the safe
+        output at once (it has no loop to hold): when the other bank's controller keeps
+        their shared demand frame on the bus, this bank's valve gets its safe opening."""
         if not self.enable:
-            return None
+            self.u = self.integral = min(max(self.safe_output, self.out_min), self.out_max)
+            self.saturated = False
+            self.mode = f"manual, safe: {reason}"
+            return {self.output: self.u}
         self._t_last = t
         if self._bad_since is None:
             self._bad_since = t

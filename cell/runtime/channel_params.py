@@ -4,7 +4,9 @@ its unit is not the one the block needs (issue 24: ``PATCH /controllers/PI_R {"f
 
 A block declares them in :attr:`~cell.runtime.blocks.Block.CHANNEL_PARAMS` (parameter ->
 unit, ``""`` for any). A channel is known when the store holds it (a bus signal seen, or a
-block's output) or a DBC file defines it. The error names the channels that would do.
+block's output, a user's signal mapped onto a cell channel with ``--map``) or a DBC file
+defines it. A channel of no known unit is refused where a unit is needed: the block could
+not tell a kPa signal from an mmH2O one. The error names the channels that would do.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from typing import Any
 
 from cell.core.errors import ParamError
 from cell.runtime.blocks import Block
+from cell.runtime.units import key as unit_key
 
 
 def channel_units(runtime: Any) -> dict[str, str]:
@@ -36,15 +39,17 @@ def check_channel_params(runtime: Any, block: Block, changes: Any) -> None:
         name = name.strip()
         if units is None:
             units = channel_units(runtime)
-        fit = sorted(n for n, u in units.items() if not unit or u == unit)
+        want = unit_key(unit)
+        fit = sorted(n for n, u in units.items()
+                     if (not unit or unit_key(u) == want) and n not in block.outputs)
         which = f"channels in {unit}" if unit else "channels"
         listing = ", ".join(fit) or "none"
         if name not in units:
             raise ParamError(key, f"{name!r} is not a channel of this cell; {which}: {listing}")
         have = units[name]
-        if unit and have and have != unit:
-            raise ParamError(key, f"{name} is in {have}, {block.name} needs {unit}; "
-                                  f"{which}: {listing}")
+        if unit and unit_key(have) != want:
+            raise ParamError(key, f"{name} is {'in ' + have if have else 'of no known unit'}, "
+                                  f"{block.name} needs {unit}; {which}: {listing}")
 
 
 __all__ = ["channel_units", "check_channel_params"]

@@ -607,8 +607,11 @@ class Runtime:
             names = self.db.payload_signals(message)  # the E2E counter and CRC: encode's
             if not updated.intersection(names):
                 continue
-            if not all(self.blocks[self.producer[n]].on_bus for n in names):
-                continue  # e.g. a disabled controller: its demand stays off the bus
+            if not any(self.blocks[self.producer[n]].on_bus for n in names):
+                continue  # e.g. both banks' controllers disabled: their demand stays off
+            # a frame another block keeps on the bus (the other bank's enabled controller)
+            # carries a block's output that is off the bus by itself, e.g. a disabled
+            # controller's manual or safe output: one bank off never stops the other's demand
             picked = [chans[n] for n in names]
             if any(c.status != OK or c.value is None for c in picked):
                 continue  # a stale or invalid output is not put on the bus

@@ -127,3 +127,38 @@ def test_health_counts_implausible_values_by_signal(db, tmp_path):
     ch = c.get("/channels/EXH_BP_R").json()
     assert ch["status"] == "invalid"
     assert "EXH_BP_R = 2.14748e+07 is outside its range -500..20000" in ch["reason"]
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("feedback", "VALVE_POS_R", ["VALVE_POS_R is in %", "PI_R needs mmH2O", "EXH_BP_R_Kalman"]),
+    ("feedback", "ENGINE_STATE", ["ENGINE_STATE is of no known unit", "needs mmH2O"]),
+    ("track", "EXH_BP_R", ["EXH_BP_R is in mmH2O", "needs %", "VALVE_POS_R"]),
+    ("track", "NOPE", ["'NOPE' is not a channel", "channels in %: "]),
+])
+def test_a_channel_of_the_wrong_unit_is_422_naming_the_ones_that_would_do(db, tmp_path, field,
+                                                                          value, words):
+    rt, cell, c = make(db, tmp_path / "t.json", [*native_filters(), *controllers("kalman")])
+    before = c.get("/controllers/PI_R").json()["params"]
+    r = c.patch("/controllers/PI_R", json={field: value})
+    assert r.status_code == 422, r.text
+    (err,) = r.json()["detail"]
+    assert err["loc"] == ["body", field] and all(w in err["msg"] for w in words), err["msg"]
+    assert "VALVE_DEMAND_R" not in err["msg"]  # never the controller's own output
+    assert c.get("/controllers/PI_R").json()["params"] == before
+
+
+def test_a_mapped_channel_is_a_feedback_the_controller_takes(tmp_path):
+    """A user's kPa signal mapped onto a cell channel is that channel, in mmH2O (--map)."""
+    from pathlib import Path
+
+    from cell.bus.dbc import load
+    from cell.runtime import mapping
+
+    daq = load([Path(__file__).resolve().parents[1] / "data" / "dbc" / "daq_kpa.dbc"])
+    rt, cell, c = make(daq, tmp_path / "t.json", [*native_filters(), *controllers("kalman")])
+    mapping.install(rt, ["EXH_BP_R=DAQ_BP_R"])
+    r = c.patch("/controllers/PI_R", json={"feedback": "DAQ_BP_R"})  # kPa: refused
+    assert r.status_code == 422 and "DAQ_BP_R is in kPa" in r.text, r.text
+    r = c.patch("/controllers/PI_R", json={"feedback": "EXH_BP_R"})  # the mapped one: taken
+    assert r.status_code == 200, r.text
+    assert rt.blocks["PI_R"].feedback == "EXH_BP_R"

@@ -273,3 +273,16 @@ def test_replay_refuses_a_bad_map_with_exit_2_naming_it(kpa_log, tmp_path, capsy
                      "--engine", "large-diesel", "--dbc", str(DAQ), "--map", spec])
     err = capsys.readouterr().err
     assert code == 2 and words in err and spec in err, err
+
+
+def test_up_refuses_a_bad_map_with_exit_2_before_serving(monkeypatch, tmp_path, capsys):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    code = cli.main(["up", "--no-sim", "--bus", "virtual", "--port", str(port), "--dbc",
+                     str(DAQ), "--map", "EXH_BP_R=DAQ_BP_R", "--map", "VALVE_DEMAND_R=DAQ_BP_L"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--map 'VALVE_DEMAND_R=DAQ_BP_L'" in err and "is an output" in err, err

@@ -75,6 +75,9 @@ class LiveCell:
 
     #: Most frames taken from the socket before they are handed to the runtime together.
     BATCH = 256
+    #: read the bus one python-can ``recv`` at a time, not in batches (the receive before
+    #: :meth:`CellBus.recv_batch`; ``benchmarks/bench_ingest.py`` compares the two)
+    per_frame = False
 
     def __init__(self, runtime: Runtime, bus: CellBus, grace_s: float = 0.05,
                  silent_s: float = 1.0, backoff: Backoff | None = None,
@@ -284,19 +287,12 @@ class LiveCell:
                     continue
             batch: list = []
             failure: BaseException | None = None
-            drained = False
             try:
-                msg = self.bus.recv(timeout=0.01)
-                if msg is not None:
-                    batch.append(msg)
-                    while len(batch) < self.BATCH:  # what is already queued, in one go
-                        msg = self.bus.recv(timeout=0.0)
-                        if msg is None:
-                            drained = True
-                            break
-                        batch.append(msg)
+                batch = self._receive(0.01)
             except Exception as exc:  # a broken bus must not kill the cell
                 failure = exc
+            # a batch short of BATCH emptied the socket: what it holds is the newest
+            drained = 0 < len(batch) < self.BATCH
             if batch:
                 if self.silent:
                     self.silent = False
@@ -321,6 +317,22 @@ class LiveCell:
                 # backlog of received but unread frames would miss their ticks
                 self._tick_silent()
             self._send_outbox()
+
+    def _receive(self, timeout: float) -> list:
+        """The frames already queued on the bus (at most :attr:`BATCH`), waiting up to
+        ``timeout`` for the first: in one batch read where the bus offers it
+        (:meth:`CellBus.recv_batch`), else frame by frame (:attr:`per_frame`)."""
+        batch_read = None if self.per_frame else getattr(self.bus, "recv_batch", None)
+        if batch_read is not None:
+            return batch_read(timeout, self.BATCH)
+        batch: list = []
+        msg = self.bus.recv(timeout=timeout)
+        while msg is not None:
+            batch.append(msg)
+            if len(batch) >= self.BATCH:
+                break
+            msg = self.bus.recv(timeout=0.0)
+        return batch
 
     def _tick_silent(self) -> None:
         est = self.estimated_bus_time()

@@ -21,6 +21,7 @@ import os
 import select
 import socket
 import struct
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -204,6 +205,100 @@ def frame_of(data: bytes, stamp: float, unpackb=None) -> can.Message:
     return msg
 
 
+class _Mmsg:
+    """Many datagrams per system call: Linux's ``recvmmsg(2)`` through ctypes, which the
+    :mod:`socket` module does not offer.
+
+    Every call the socket module makes releases the GIL. While another thread of the
+    process computes (a designer in the background, the HTTP server), the receiving thread
+    then waits for the GIL again after each datagram, up to the interpreter's switch
+    interval (5 ms): a few thousand frames a second were enough to fall behind. The call
+    here is made through :class:`ctypes.PyDLL`, which keeps the GIL: it never blocks
+    (``MSG_DONTWAIT``) and copies up to :attr:`N` datagrams, with each one's kernel receive
+    time (``SO_TIMESTAMPNS``), in a few microseconds per datagram.
+    """
+
+    N = 256
+    SIZE = 4096  # python-can's own receive buffer
+
+    def __init__(self, fd: int) -> None:
+        import ctypes
+        import ctypes.util
+
+        class Iovec(ctypes.Structure):
+            _fields_ = [("iov_base", ctypes.c_void_p), ("iov_len", ctypes.c_size_t)]
+
+        class Msghdr(ctypes.Structure):
+            _fields_ = [("msg_name", ctypes.c_void_p), ("msg_namelen", ctypes.c_uint32),
+                        ("msg_iov", ctypes.c_void_p), ("msg_iovlen", ctypes.c_size_t),
+                        ("msg_control", ctypes.c_void_p), ("msg_controllen", ctypes.c_size_t),
+                        ("msg_flags", ctypes.c_int)]
+
+        class Mmsghdr(ctypes.Structure):
+            _fields_ = [("msg_hdr", Msghdr), ("msg_len", ctypes.c_uint)]
+
+        libc = ctypes.PyDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        self._call = libc.recvmmsg  # AttributeError where the C library has none
+        self._call.restype = ctypes.c_int
+        self._call.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int,
+                               ctypes.c_void_p]
+        self._errno = ctypes.get_errno
+        n, size = self.N, self.SIZE
+        self.control = socket.CMSG_SPACE(_TIMESPEC.size)
+        self._data = ctypes.create_string_buffer(n * size)
+        self._ctl = ctypes.create_string_buffer(n * self.control)
+        self._iov = (Iovec * n)()
+        self._hdrs = (Mmsghdr * n)()
+        base, cbase = ctypes.addressof(self._data), ctypes.addressof(self._ctl)
+        for i in range(n):
+            self._iov[i].iov_base, self._iov[i].iov_len = base + i * size, size
+            h = self._hdrs[i].msg_hdr
+            h.msg_iov, h.msg_iovlen = ctypes.addressof(self._iov[i]), 1
+            h.msg_control, h.msg_controllen = cbase + i * self.control, self.control
+        self.fd = fd
+        self._hdr_size = ctypes.sizeof(Mmsghdr)
+        self._len_at = Mmsghdr.msg_len.offset
+        self._ctl_len_at = Mmsghdr.msg_hdr.offset + Msghdr.msg_controllen.offset
+        self._flags_at = Mmsghdr.msg_hdr.offset + Msghdr.msg_flags.offset
+        self.data = memoryview(self._data).cast("B")
+        self.ctl = memoryview(self._ctl).cast("B")
+        self._hdr_view = memoryview(self._hdrs).cast("B")
+        self._used = n  # entries whose control length the kernel may have changed
+        self._size_t = struct.Struct("@N")
+        self._uint = struct.Struct("@I")
+        self._cmsg = struct.Struct("@Nii")
+
+    def read(self, limit: int) -> list[tuple[memoryview, float | None]]:
+        """Up to ``limit`` (at most :attr:`N`) datagrams already queued, each with its kernel
+        receive time (``None`` when the kernel gave none); ``[]`` when none is."""
+        hv, size_t, ctl_len = self._hdr_view, self._size_t, self.control
+        hs, cl_at = self._hdr_size, self._ctl_len_at
+        for i in range(self._used):  # the kernel rewrote the control lengths it filled
+            size_t.pack_into(hv, i * hs + cl_at, ctl_len)
+        n = self._call(self.fd, self._hdrs, min(limit, self.N), socket.MSG_DONTWAIT, None)
+        if n < 0:
+            err = self._errno()
+            self._used = 0
+            if err in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EINTR):
+                return []
+            raise OSError(err, os.strerror(err))
+        self._used = n
+        out = []
+        uint, cmsg, timespec = self._uint.unpack_from, self._cmsg.unpack_from, _TIMESPEC.unpack_from
+        data, ctl, size, len_at = self.data, self.ctl, self.SIZE, self._len_at
+        head = self._cmsg.size
+        for i in range(n):
+            length = uint(hv, i * hs + len_at)[0]
+            stamp = None
+            if size_t.unpack_from(hv, i * hs + cl_at)[0] >= head + _TIMESPEC.size:
+                _, level, kind = cmsg(ctl, i * ctl_len)
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                    sec, nsec = timespec(ctl, i * ctl_len + head)
+                    stamp = sec + nsec * 1e-9
+            out.append((data[i * size:i * size + min(length, size)], stamp))
+        return out
+
+
 class DatagramReader:
     """The frames of a python-can udp_multicast bus, read in batches straight from its socket.
 
@@ -244,6 +339,12 @@ class DatagramReader:
                 self._anc = socket.CMSG_SPACE(_TIMESPEC.size)
             except OSError:  # no kernel stamps here: the wall clock at reading
                 self._anc = 0
+            self._many: _Mmsg | None = None
+            if self._anc and sys.platform.startswith("linux"):
+                try:
+                    self._many = _Mmsg(sock.fileno())  # type: ignore[union-attr]
+                except (AttributeError, OSError, ImportError) as exc:  # no recvmmsg here
+                    log.debug("recvmmsg not available (%s): one datagram per call", exc)
 
     @classmethod
     def of(cls, bus: can.BusABC) -> DatagramReader:
@@ -262,6 +363,8 @@ class DatagramReader:
                 raise can.CanOperationError(f"failed to wait for the UDP socket: {exc}") from exc
             if not ready:
                 return []
+        if self._many is not None:
+            return self._read_many(limit, skipped)
         out: list[can.Message] = []
         recvmsg, anc, flags = sock.recvmsg, self._anc, socket.MSG_DONTWAIT
         unpackb, timespec, fd = self._unpackb, _TIMESPEC.unpack, self._fd
@@ -293,13 +396,47 @@ class DatagramReader:
             out.append(msg)
         return out
 
+    def _read_many(self, limit: int, skipped) -> list[can.Message]:
+        many, unpackb, fd = self._many, self._unpackb, self._fd
+        assert many is not None and self.sock is not None
+        if self.sock.fileno() != many.fd:  # closed under us: its number may be another's now
+            raise can.CanOperationError(f"the UDP socket of {self.bus.channel_info} is closed")
+        out: list[can.Message] = []
+        while len(out) < limit:
+            try:
+                got = many.read(limit - len(out))
+            except OSError as exc:
+                if out:
+                    break  # the frames read before it go first; the next read raises again
+                raise can.CanOperationError(f"failed to receive on the UDP socket: {exc}") from exc
+            for data, stamp in got:
+                try:
+                    msg = frame_of(data, time.time() if stamp is None else stamp, unpackb)
+                except Exception as exc:  # not a python-can frame: counted by the caller
+                    err = can.CanOperationError("could not unpack received message")
+                    err.__cause__ = exc
+                    skipped(err)
+                    continue
+                if msg.is_fd and not fd:
+                    continue
+                out.append(msg)
+            if len(got) < many.N:
+                break  # the socket is empty
+        return out
+
 
 class CellBus:
     """A python-can bus that drops the echoes of its own frames and skips what it cannot decode.
 
     udp_multicast delivers every datagram to every member of the group, the sender
-    included. Frames this bus sent are remembered for a short while and dropped when they
-    come back.
+    included. Frames this bus sent are remembered until their echo comes back, which is
+    then dropped. A sent frame is forgotten once the receive has read frames stamped
+    :attr:`ECHO_WINDOW_S` after it was sent (its echo would have come before them), or at
+    the latest :attr:`ECHO_KEEP_S` after it was sent: the window runs on the receive's own
+    progress, not the wall clock, so a receiver seconds behind (a backlog, a stall) still
+    recognises its own frames. (With a wall-clock window of 2 s, such a receiver took the
+    echoes of its own outputs for received frames: the soak's "runtime counted more than
+    the simulator sent".)
 
     A datagram or frame that cannot be decoded (:func:`is_undecodable`: anyone on the group
     can send 21 bytes of garbage) never raises out of :meth:`recv`: it is counted in
@@ -308,6 +445,8 @@ class CellBus:
     """
 
     ECHO_WINDOW_S = 2.0
+    #: the longest a sent frame is remembered when no frame stamped after it is read
+    ECHO_KEEP_S = 120.0
 
     def __init__(self, bus: can.BusABC, spec: BusSpec, kwargs: dict[str, Any] | None = None) -> None:
         self.bus = bus
@@ -329,10 +468,16 @@ class CellBus:
     def _key(msg: can.Message) -> tuple:
         return (msg.arbitration_id, bool(msg.is_extended_id), bytes(msg.data))
 
-    def _expire(self, now: float) -> None:
-        while self._sent and now - self._sent[0][0] > self.ECHO_WINDOW_S:
+    def _expire(self, before: float) -> None:
+        """Forget the frames sent before wall time ``before`` (their echoes came or never will)."""
+        while self._sent and self._sent[0][0] < before:
             _, key = self._sent.popleft()
             self._unpend(key)
+
+    def _received_up_to(self, stamp: float) -> None:
+        """The receive has read a frame stamped ``stamp`` (wall clock, the kernel's)."""
+        if self._sent and self._sent[0][0] < stamp - self.ECHO_WINDOW_S:
+            self._expire(stamp - self.ECHO_WINDOW_S)
 
     def _unpend(self, key: tuple) -> None:
         self._pending[key] -= 1
@@ -352,8 +497,8 @@ class CellBus:
 
     def send(self, msg: can.Message) -> None:
         if self._drop_echoes:
-            now = time.monotonic()
-            self._expire(now)
+            now = time.time()  # the clock the kernel stamps received datagrams with
+            self._expire(now - self.ECHO_KEEP_S)
             key = self._key(msg)
             self._sent.append((now, key))
             self._pending[key] += 1
@@ -407,6 +552,8 @@ class CellBus:
         frames = reader.read(timeout, limit, self._skipped)
         if self._pending_ids and frames:
             frames = [m for m in frames if not self._is_echo(m)]
+            if frames:
+                self._received_up_to(frames[-1].timestamp)
         return frames
 
     def _reader(self) -> DatagramReader | None:
@@ -438,6 +585,8 @@ class CellBus:
                 if deadline is not None and time.monotonic() >= deadline:
                     return None
                 continue
+            if self._sent:
+                self._received_up_to(msg.timestamp)
             return msg
 
     def shutdown(self) -> None:

@@ -1,5 +1,6 @@
 """Bus selection, echo dropping and the one-line errors of cell.bus.interface."""
 
+import collections
 
 import can
 import pytest
@@ -72,6 +73,33 @@ def test_own_echoes_are_dropped_but_identical_foreign_frames_are_not():
     other = can.Message(arbitration_id=0x101, data=b"\x02" * 8, is_extended_id=False)
     fake.queue.append(other)
     assert b.recv(0).arbitration_id == 0x101
+
+
+def test_an_echo_read_seconds_late_is_still_dropped(monkeypatch):
+    """A receiver behind its socket by more than the echo window (a backlog) while it goes
+    on sending: its own frames come back late and must not count as received (the soak's
+    "runtime counted more than the simulator sent")."""
+    clock = [1000.0]
+    monkeypatch.setattr(cellbus.time, "time", lambda: clock[0])
+    monkeypatch.setattr(cellbus.time, "monotonic", lambda: clock[0])  # either clock: 4 s pass
+    fake = FakeBus()
+    b = CellBus(fake, BusSpec("udp_multicast", MULTICAST_GROUP))
+    for k in range(40):  # 4 s of outputs at 10 Hz, none read yet
+        b.send(can.Message(timestamp=clock[0], arbitration_id=0x300, data=bytes([k]) * 8,
+                           is_extended_id=False))
+        clock[0] += 0.1
+    assert [m for _ in range(45) for m in b.recv_batch(0.0)] == []  # (one echo per zero-timeout
+    assert b.echoes_dropped == 40  # receive on this fake bus) every echo recognised
+    # a foreign frame stamped after the window lets the records of older sends go
+    b.send(can.Message(timestamp=clock[0], arbitration_id=0x300, data=b"\xaa" * 8,
+                       is_extended_id=False))
+    fake.queue[:] = [can.Message(timestamp=clock[0] + 2.5, arbitration_id=0x101, data=b"\x02",
+                                 is_extended_id=False)]
+    assert len(b.recv_batch(0.0)) == 1 and b._sent == collections.deque()
+    # and a frame nobody reads back is forgotten at the latest after ECHO_KEEP_S
+    clock[0] += b.ECHO_KEEP_S + 1
+    b.send(can.Message(timestamp=clock[0], arbitration_id=0x301, data=b"\x01", is_extended_id=False))
+    assert len(b._sent) == 1 and set(b._pending_ids) == {0x301}
 
 
 @pytest.mark.skipif(not routed_over_loopback(), reason=NOT_ROUTED)

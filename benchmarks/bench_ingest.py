@@ -170,8 +170,9 @@ def measure(engine: str, n: int, bus_spec: str, window: int) -> list[dict]:
     spec = resolve(bus_spec)
     dest = (spec.channel, spec.port)
     packed = traffic(engine)
-    runs = [("python-can recv loop alone (reference)", lambda: run_reference(packed, n, bus_spec, dest, window)),
-            ("runtime, per-frame python-can recv (previous path)",
+    runs = [("python-can recv loop alone (reference)",
+             lambda: run_reference(packed, n, bus_spec, dest, window)),
+            ("runtime, python-can recv frame by frame (previous receive)",
              lambda: run_runtime(engine, packed, n, bus_spec, dest, window, per_frame=True)),
             ("runtime, batch receive (this build)",
              lambda: run_runtime(engine, packed, n, bus_spec, dest, window, per_frame=False))]

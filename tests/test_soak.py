@@ -41,8 +41,10 @@ def test_short_soak_loses_no_frame_and_reports_the_stream_lag():
         assert r["sim_sent"] and abs(r["wire_frames"] - r["sim_sent"]) <= 32, r  # said what it sent
         # never more than it sent: a runtime behind its socket by over 2 s once took the
         # echoes of its own outputs for received frames (78,197 counted of 78,117 sent),
-        # which the soak compares in the total when /metrics' count by ID is not to be had
-        assert r["runtime_frames"] <= r["sim_sent"], r
+        # which the soak compares in the total when /metrics' count by ID is not to be had.
+        # The frames of the step SIGTERM interrupts are sent but not in the simulator's count
+        # (at most 25 for si-turbo): the same tolerance as the wire's above
+        assert r["runtime_frames"] <= r["sim_sent"] + 32, r
         if r["engine"] == "large-diesel":
             assert r["lost"] == 0, r
         assert r["stream_messages"] > 0 and r["channels_requests"] > 0, r

@@ -111,10 +111,15 @@ def sim_frames_received(base: str, sim_ids: set[int]) -> dict[int, int] | None:
     None when ``/metrics`` does not say. The runtime's own frames, should an echo of one
     come back unrecognised, are not the simulator's."""
     req = urllib.request.Request(f"{base}/metrics", headers=HEADERS)
-    try:
-        with urllib.request.urlopen(req, timeout=5) as r:
-            text = r.read().decode()
-    except OSError:
+    text = None
+    for _ in range(3):  # a loaded service may take a while: the count by ID is what is compared
+        try:
+            with urllib.request.urlopen(req, timeout=20) as r:
+                text = r.read().decode()
+            break
+        except OSError:
+            time.sleep(1.0)
+    if text is None:
         return None
     by_id: dict[int, int] = {}
     seen = False
@@ -275,7 +280,10 @@ def soak_engine(engine: str, seconds: float, state_dir: Path, speed: float, grou
         counter.close()
     m = re.findall(r"sim sent (\d+) frames", sim_log)
     sent = int(m[-1]) if m else None
+    # without /metrics' count by ID, the frames of every sender (the runtime's own echoes
+    # too, should any be missed) are all the soak has: said so in the report
     received = h["frames"] - h0["frames"]
+    by_id_known = by_id0 is not None and by_id1 is not None
     over: dict[str, int] = {}
     if by_id0 is not None and by_id1 is not None:
         got = {k: v - by_id0.get(k, 0) for k, v in by_id1.items()}
@@ -289,6 +297,7 @@ def soak_engine(engine: str, seconds: float, state_dir: Path, speed: float, grou
         "lost": max(0, sent - received) if sent is not None else None,
         "counted_beyond_sent": max(0, received - sent) if sent is not None else None,
         "runtime_minus_wire_by_id": over,
+        "counted_by_id": by_id_known,
         "bus_fps": round(counter.count / sim_wall) if sim_wall else 0,
         "tick_overruns": h.get("tick_overruns", "not counted on this branch"),
         "stream_messages": ws_got[0], "stream_dropped": ws_got[1],

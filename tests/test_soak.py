@@ -4,7 +4,8 @@ turn, each with ``/channels`` polled at 20 Hz and a WebSocket reading every chan
 longer, at ``--speed 20`` for both engines.
 
 What it proves: the loss accounting end to end (the frames the simulator says it sent are
-the frames on the wire, and the runtime's count of its IDs never exceeds them), and that
+the frames on the wire, and the runtime's count of its IDs, read from ``/metrics``, never
+exceeds them), and that
 none is lost by the diesel cell at ``--speed 10`` (about 5 000 frames/s, the load the
 earlier CI soak held). The si-turbo cell (crank streams and four observers, ``--speed 1``)
 is soaked and its loss printed, **not asserted**: on a shared 2-core machine under load its
@@ -38,11 +39,12 @@ def test_short_soak_loses_no_frame_and_reports_the_stream_lag():
     assert {r["engine"] for r in results} >= {"large-diesel", "si-turbo"}
     for r in results:
         assert r["sim_sent"] and abs(r["wire_frames"] - r["sim_sent"]) <= 32, r  # said what it sent
-        if r["runtime_frames"] > r["sim_sent"]:
-            # seen once in two CI runs for si-turbo (78,197 counted, 78,117 sent): unexplained,
-            # recorded in the closing note of issue 20; printed here, not asserted, until found
-            print(f"\n  {r['engine']}: the runtime counted {r['runtime_frames'] - r['sim_sent']} "
-                  f"frames more than the simulator says it sent")
+        # never more than it sent: a runtime behind its socket by over 2 s once took the
+        # echoes of its own outputs for received frames (78,197 counted of 78,117 sent),
+        # which the soak compares in the total when /metrics' count by ID is not to be had.
+        # The frames of the step SIGTERM interrupts are sent but not in the simulator's count
+        # (at most 25 for si-turbo): the same tolerance as the wire's above
+        assert r["runtime_frames"] <= r["sim_sent"] + 32, r
         if r["engine"] == "large-diesel":
             assert r["lost"] == 0, r
         assert r["stream_messages"] > 0 and r["channels_requests"] > 0, r

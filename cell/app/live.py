@@ -39,6 +39,24 @@ from cell.runtime.scheduler import Runtime
 log = logging.getLogger(__name__)
 
 
+def single_threaded_blas() -> None:
+    """Limit the BLAS and LAPACK libraries numpy and scipy load to one thread each, for the
+    rest of the process (threadpoolctl).
+
+    The blocks work on small matrices (a few states, a gain table's Riccati equations). On
+    them OpenBLAS's worker threads do no useful work in parallel, but on a machine whose
+    cores are busy every call waits for them to be scheduled: a triangular solve of the SI
+    air-path observer's gain table took 15 ms, its 35 Riccati solves 2.6 s in one MED step
+    (an 0.9 s stall of the loop), against 0.14 s with one thread.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # not installed: the libraries keep their own thread counts
+        log.debug("threadpoolctl is not installed: BLAS keeps its threads")
+        return
+    threadpool_limits(limits=1, user_api="blas")
+
+
 class Backoff:
     """Delays between reconnection attempts: ``first``, doubling, at most ``cap`` seconds."""
 
@@ -75,6 +93,9 @@ class LiveCell:
 
     #: Most frames taken from the socket before they are handed to the runtime together.
     BATCH = 256
+    #: read the bus one python-can ``recv`` at a time, not in batches (the receive before
+    #: :meth:`CellBus.recv_batch`; ``benchmarks/bench_ingest.py`` compares the two)
+    per_frame = False
 
     def __init__(self, runtime: Runtime, bus: CellBus, grace_s: float = 0.05,
                  silent_s: float = 1.0, backoff: Backoff | None = None,
@@ -126,6 +147,7 @@ class LiveCell:
         # start (modules, the DBC, the blocks) lives as long as the cell: freeze it, so
         # collections scan only what the running cell allocates.
         gc.freeze()
+        single_threaded_blas()
         self._thread = threading.Thread(target=self._run, name="testcell-runtime", daemon=True)
         self._thread.start()
         self._watchdog = threading.Thread(target=self._watch, name="testcell-watchdog", daemon=True)
@@ -284,19 +306,12 @@ class LiveCell:
                     continue
             batch: list = []
             failure: BaseException | None = None
-            drained = False
             try:
-                msg = self.bus.recv(timeout=0.01)
-                if msg is not None:
-                    batch.append(msg)
-                    while len(batch) < self.BATCH:  # what is already queued, in one go
-                        msg = self.bus.recv(timeout=0.0)
-                        if msg is None:
-                            drained = True
-                            break
-                        batch.append(msg)
+                batch = self._receive(0.01)
             except Exception as exc:  # a broken bus must not kill the cell
                 failure = exc
+            # a batch short of BATCH emptied the socket: what it holds is the newest
+            drained = 0 < len(batch) < self.BATCH
             if batch:
                 if self.silent:
                     self.silent = False
@@ -321,6 +336,22 @@ class LiveCell:
                 # backlog of received but unread frames would miss their ticks
                 self._tick_silent()
             self._send_outbox()
+
+    def _receive(self, timeout: float) -> list:
+        """The frames already queued on the bus (at most :attr:`BATCH`), waiting up to
+        ``timeout`` for the first: in one batch read where the bus offers it
+        (:meth:`CellBus.recv_batch`), else frame by frame (:attr:`per_frame`)."""
+        batch_read = None if self.per_frame else getattr(self.bus, "recv_batch", None)
+        if batch_read is not None:
+            return batch_read(timeout, self.BATCH)
+        batch: list = []
+        msg = self.bus.recv(timeout=timeout)
+        while msg is not None:
+            batch.append(msg)
+            if len(batch) >= self.BATCH:
+                break
+            msg = self.bus.recv(timeout=0.0)
+        return batch
 
     def _tick_silent(self) -> None:
         est = self.estimated_bus_time()

@@ -156,6 +156,26 @@ class SampleTracker:
     _next: int | None = None
     _held: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)
     _run: list[tuple[int, np.ndarray, float]] = field(default_factory=list)
+    _period: int = field(default=0, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._period = self.layout.period
+
+    def take(self, index: int, n: int) -> bool:
+        """The common case of :meth:`push` without its generator: a frame of ``n`` samples
+        at ``index`` that is the one expected, with nothing held back. Counts it and returns
+        True (the caller passes its samples on, as the one ``("samples", ...)`` event
+        :meth:`push` would yield); returns False, changing nothing, for any other frame."""
+        nxt = self._next
+        if self._held or (nxt is not None and nxt != index):
+            return False
+        c = self.counts
+        c.frames += 1
+        c.samples += n
+        if self._run:
+            self._run.clear()
+        self._next = (index + n) % self._period
+        return True
 
     def push(self, index: int, values: np.ndarray, t: float) -> Iterator[tuple]:
         c, period = self.counts, self.layout.period

@@ -217,6 +217,8 @@ class Runtime:
         self._layouts: dict[str, SampleLayout] | None = None
         #: a user's signals on the cell's channels (:mod:`cell.runtime.mapping`)
         self.signal_map = SignalMap()
+        #: the blocks' seconds on samples not yet counted (:meth:`_count_stream_time`)
+        self._stream_spent: dict[str, float] = {}
         for block in blocks:
             self.add_block(block)
 
@@ -286,12 +288,38 @@ class Runtime:
             route = self._streams[key] = _SampleRoute(layout, self._stream_window, m)
         return route
 
-    def _ingest_stream(self, route: _SampleRoute, message: Any, data: bytes, ts: float) -> None:
-        """Hand a stream frame's samples, in angle order, to the blocks that consume it.
+    def _decode_streams(self, msgs: list | tuple) -> dict[int, tuple[int, np.ndarray]]:
+        """The samples of every stream frame among ``msgs`` that takes the fast path, decoded
+        together per stream (:meth:`StreamUnpacker.many`), by ``id`` of the frame."""
+        streams = self._streams
+        found: dict[tuple[int, bool], list] = {}
+        for msg in msgs:
+            key = (msg.arbitration_id, msg.is_extended_id)
+            if key in streams and len(msg.data) == 8:
+                found.setdefault(key, []).append(msg)
+        out: dict[int, tuple[int, np.ndarray]] = {}
+        for key, frames in found.items():
+            unpack = streams[key].unpack
+            if unpack is None:
+                continue
+            if len(frames) == 1:
+                out[id(frames[0])] = unpack(bytes(frames[0].data))
+                continue
+            indexes, samples = unpack.many([m.data for m in frames])
+            for msg, index, row in zip(frames, indexes, samples):
+                out[id(msg)] = (index, row)
+        return out
+
+    def _ingest_stream(self, route: _SampleRoute, message: Any, data: bytes, ts: float,
+                       decoded: tuple[int, np.ndarray] | None = None) -> None:
+        """Hand a stream frame's samples, in angle order, to the blocks that consume it
+        (``decoded``: its samples, when decoded with the rest of its batch).
 
         The blocks' time on the samples counts in their ``step_time`` and in the work of
-        the next tick (:func:`cell.runtime.stream_time.count`)."""
-        if route.unpack is not None and len(data) == 8:
+        the next tick (:func:`cell.runtime.stream_time.count`, in one sum per ingest)."""
+        if decoded is not None:
+            index, samples = decoded
+        elif route.unpack is not None and len(data) == 8:
             index, samples = route.unpack(bytes(data))
         else:
             try:
@@ -302,11 +330,16 @@ class Runtime:
             index, samples = route.layout.unpack(values)
         name = route.layout.name
         faults = self.faults
-        for event in route.tracker.push(index, samples, ts):
+        spent = self._stream_spent
+        events: Iterable[tuple] = ((("samples", index, samples, ts),)
+                                   if route.tracker.take(index, len(samples))
+                                   else route.tracker.push(index, samples, ts))
+        clock = time.perf_counter
+        for event in events:
             for block in route.blocks:
                 if faults.by_block and faults.waiting(block.name, ts) is not None:
                     continue  # backing off after a fault: its samples wait for the retry
-                started = time.perf_counter()
+                started = clock()
                 try:
                     if event[0] == "samples":
                         block.samples(name, event[1], event[2], event[3])
@@ -318,7 +351,15 @@ class Runtime:
                 except Exception as exc:  # any defect of one block faults that block alone
                     self.counters.block_errors[block.name] += 1
                     faults.exception(block, exc, ts)
-                stream_time.count(self, block.name, time.perf_counter() - started)
+                spent[block.name] = spent.get(block.name, 0.0) + (clock() - started)
+
+    def _count_stream_time(self) -> None:
+        """Count the blocks' time on samples since the last call (:mod:`stream_time`)."""
+        spent = self._stream_spent
+        for name, seconds in spent.items():
+            if name in self.blocks:
+                stream_time.count(self, name, seconds)
+        spent.clear()
 
     def block(self, name: str, family: str | None = None) -> Block:
         block = self.blocks.get(name)
@@ -380,6 +421,9 @@ class Runtime:
         with self.lock:
             nxt = self._next_due
             last = self.last_frame_time
+            # a batch's stream frames are decoded together; a log read as it goes, frame by frame
+            decoded = (self._decode_streams(msgs) if streams and isinstance(msgs, (list, tuple))
+                       else None)
             try:
                 for msg in msgs:
                     n += 1
@@ -419,13 +463,16 @@ class Runtime:
                     if streams:
                         route = streams.get(key)
                         if route is not None:
-                            self._ingest_stream(route, message, msg.data, ts)
+                            self._ingest_stream(route, message, msg.data, ts,
+                                                decoded.get(id(msg)) if decoded else None)
                     prev = pending.get(key)
                     if prev is None or ts >= prev[1]:
                         pending[key] = (message, ts, msg.data)
             finally:  # frames applied before a bad log line still count
                 counters.frames += n
                 self.last_frame_time = last
+                if self._stream_spent:
+                    self._count_stream_time()
         return n
 
     def _flush(self) -> None:
@@ -483,6 +530,8 @@ class Runtime:
         nxt = self._next_due
         if nxt is not None and (nxt > until + _EPS or (not inclusive and nxt >= until - _EPS)):
             return  # the common case: a frame between two ticks
+        if self._stream_spent:  # the samples' work so far goes to the tick about to run
+            self._count_stream_time()
         if self._next_index is None:
             # first time seen: the first tick of each task is the first grid point at or after it
             self._next_index = {

@@ -9,18 +9,21 @@ function from a frame's data to ``(angle index of the first sample, samples)`` (
 :meth:`SampleLayout.unpack` over :meth:`CellDatabase.decode_payload`: the same
 ``raw * scale + offset`` per signal), or ``None`` for a layout it does not cover, which then
 goes through cantools as before.
+
+The live loop hands the runtime a batch of frames at a time (up to 256, a quarter of them
+crank frames on si-turbo); the unpacker's :meth:`~StreamUnpacker.many` decodes all the
+frames of one stream in such a batch with one set of array operations, the same floats as
+frame by frame, so a crank frame's decode costs a fraction of a microsecond, not the
+dozen numpy calls of one small array.
 """
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import numpy as np
 from cantools.database.can import Message
 
 from cell.runtime.samples import SampleLayout
 
-Unpacker = Callable[[bytes], tuple[int, np.ndarray]]
 
 
 def _plain(signal) -> bool:
@@ -30,7 +33,7 @@ def _plain(signal) -> bool:
             and signal.length <= 32)
 
 
-def fast_unpacker(message: Message, layout: SampleLayout) -> Unpacker | None:
+def fast_unpacker(message: Message, layout: SampleLayout) -> StreamUnpacker | None:
     """The unpacker of ``layout``'s frames of ``message`` (module docstring), or None."""
     by_name = {s.name: s for s in message.signals}
     names = (layout.angle_signal, *layout.sample_signals)
@@ -45,19 +48,41 @@ def fast_unpacker(message: Message, layout: SampleLayout) -> Unpacker | None:
     full = np.array([1 << s.length for s in sigs], dtype=np.int64)
     scale = np.array([float(s.scale) for s in sigs])
     offset = np.array([float(s.offset) for s in sigs])
-    any_signed = bool(signed.any())
-    step, period = layout.step_deg, layout.period
+    return StreamUnpacker(shifts, masks, signed, half, full, scale, offset, layout)
 
-    def unpack(data: bytes) -> tuple[int, np.ndarray]:
+
+class StreamUnpacker:
+    """A stream message's frames to ``(angle index, samples)``: one (call) or many."""
+
+    __slots__ = ("shifts", "masks", "signed", "half", "full", "scale", "offset", "any_signed",
+                 "step", "period")
+
+    def __init__(self, shifts, masks, signed, half, full, scale, offset,
+                 layout: SampleLayout) -> None:
+        self.shifts, self.masks, self.signed = shifts, masks, signed
+        self.half, self.full, self.scale, self.offset = half, full, scale, offset
+        self.any_signed = bool(signed.any())
+        self.step, self.period = layout.step_deg, layout.period
+
+    def __call__(self, data: bytes) -> tuple[int, np.ndarray]:
         word = np.frombuffer(data, dtype="<u8", count=1)[0]
-        raw = ((word >> shifts) & masks).astype(np.int64)
-        if any_signed:
-            raw = np.where(signed & (raw >= half), raw - full, raw)
-        phys = raw * scale + offset
-        index = int(round(float(phys[0]) / step)) % period
+        raw = ((word >> self.shifts) & self.masks).astype(np.int64)
+        if self.any_signed:
+            raw = np.where(self.signed & (raw >= self.half), raw - self.full, raw)
+        phys = raw * self.scale + self.offset
+        index = int(round(float(phys[0]) / self.step)) % self.period
         return index, phys[1:]
 
-    return unpack
+    def many(self, datas: list) -> tuple[list[int], np.ndarray]:
+        """The angle indexes and samples (one row per frame) of frames of 8 bytes each: the
+        same numbers as calling the unpacker on each."""
+        words = np.frombuffer(b"".join(datas), dtype="<u8")
+        raw = ((words[:, None] >> self.shifts) & self.masks).astype(np.int64)
+        if self.any_signed:
+            raw = np.where(self.signed & (raw >= self.half), raw - self.full, raw)
+        phys = raw * self.scale + self.offset
+        index = (np.rint(phys[:, 0] / self.step).astype(np.int64) % self.period).tolist()
+        return index, phys[:, 1:]
 
 
-__all__ = ["fast_unpacker"]
+__all__ = ["StreamUnpacker", "fast_unpacker"]

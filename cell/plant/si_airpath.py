@@ -50,7 +50,8 @@ from typing import NamedTuple
 import numpy as np
 
 from cell.core.errors import ConfigError
-from cell.plant import airpath_parts as ap
+from cell.plant import airpath_kernel, airpath_parts as ap
+from cell.plant.airpath_kernel import CONSTANTS, FIRST_TERM
 from cell.plant.base import Plant, lag_factor
 from cell.plant.si_engine import steady_exhaust_temp
 
@@ -306,56 +307,81 @@ def rk4(x: list[float], u: Sequence[float], p: SIAirPathParams, h: float, n: int
     return x
 
 
+def plant_constants(p: SIAirPathParams) -> dict[str, float]:
+    """The constants of the air path's integrator for the parameters ``p``, by name
+    (:data:`~cell.plant.airpath_kernel.CONSTANTS`): what :func:`plant_rk4` and the compiled
+    kernel compute once instead of at every right-hand-side evaluation."""
+    g, R = ap.GAMMA_AIR, ap.R_AIR
+    ge, Re = p.gamma_e, p.R_e
+    k_a = 2.0 * g / (g - 1.0)
+    e1_a, e2_a = 2.0 / g, (g + 1.0) / g
+    k_e = 2.0 * ge / (ge - 1.0)
+    e1_e, e2_e = 2.0 / ge, (ge + 1.0) / ge
+    th_lin = p.throttle_pr_lin
+    wg_lin = 0.99
+    T_ic_guess = p.T_coolant + 15.0
+    cv = R / (g - 1.0)
+    c = {
+        "crit_a": (2.0 / (g + 1.0)) ** (g / (g - 1.0)), "k_a": k_a, "e1_a": e1_a, "e2_a": e2_a,
+        "th_lin": th_lin, "psi_lin_th": math.sqrt(k_a * (th_lin ** e1_a - th_lin ** e2_a)),
+        "den_th": 1.0 - th_lin,
+        "crit_e": (2.0 / (ge + 1.0)) ** (ge / (ge - 1.0)), "k_e": k_e, "e1_e": e1_e,
+        "e2_e": e2_e, "wg_lin": wg_lin,
+        "psi_lin_wg": math.sqrt(k_e * (wg_lin ** e1_e - wg_lin ** e2_e)),
+        "den_wg": 1.0 - wg_lin,
+        "T_ic_guess": T_ic_guess, "sq_guess": math.sqrt(R * T_ic_guess),
+        "p_amb": p.p_amb, "k_af": p.k_af, "k_ic": p.k_ic, "k_es": p.k_es,
+        "w_ref": p.comp_w_ref, "omega_ref": p.comp_omega_ref, "k_pr": p.comp_k_pr,
+        "offset": p.comp_flow_offset, "sq_ref": math.sqrt(298.0 / p.T_amb),
+        "T_amb": p.T_amb, "comp_eff": p.comp_efficiency, "e_c": (g - 1.0) / g,
+        "eff_ic": p.ic_effectiveness, "T_cool": p.T_coolant, "cp_a": ap.CP_AIR,
+        "c_eta": p.c_eta_vol + 0.0, "r_c": p.r_c, "inv_ge": 1.0 / ge, "r_c1": p.r_c - 1.0,
+        "v_cyl": p.v_cyl, "n_cyl": p.cylinders,
+        "t_area": p.turbine_area, "sq_lin": math.sqrt(0.02),
+        "cp_e": p.cp_e, "t_eff": p.turbine_efficiency, "e_t": (ge - 1.0) / ge,
+        "h_im": p.h_im, "T_wall": p.T_wall_im, "cv": cv, "cp": cv + R, "V_im": p.V_im,
+        "G1": g * R / p.V_im, "G2": (g - 1.0) / p.V_im, "V_ic": p.V_ic, "V_em": p.V_em,
+        "J": p.J_tc, "eta_m": p.eta_m, "k_f": p.k_fric, "R": R, "Re": Re,
+        "two": 2, "one_half": 1.5,
+    }
+    return {name: c[name] for name in CONSTANTS}
+
+
+def held_terms(p: SIAirPathParams, u: Sequence[float]) -> tuple[float, ...]:
+    """The terms of the held input ``u`` that every evaluation in a call of the integrator
+    shares (:data:`~cell.plant.airpath_kernel.TERMS`, in order)."""
+    alpha, u_wg, speed, lam = u[0], u[1], u[2], u[3]
+    n = speed / 60.0
+    a = min(max(alpha, 0.0), 90.0)
+    area_th = p.throttle_a_max * (1.0 - math.cos(math.radians(a))) + p.throttle_a_leak
+    shape = 1.0 - p.eta_vol_speed_shape * (n / p.eta_vol_speed_ref - 1.0) ** 2
+    inv = 1.0 / (max(lam, 0.05) * p.afr_s)
+    charge_num, charge_den = 1.0 + p.c1 * inv, 1.0 + inv
+    lam_c = max(lam, 0.05)
+    eo = 1.0 + 1.0 / (lam_c * p.afr_s)
+    dT_phi = p.dT_comb * min(1.0 / lam_c, 1.05)
+    area_wg = p.wastegate_area * min(max(u_wg, 0.0), 1.0)
+    return n, area_th, shape, charge_num, charge_den, eo, dT_phi, area_wg
+
+
 def plant_rk4(p: SIAirPathParams):
     """:func:`rk4` of the five-state air path for the parameters ``p``, as one function.
 
     The same arithmetic as :func:`rk4` over :func:`airpath_rhs` and :func:`flows`, operation
-    for operation (so the same floats), with the parts inlined, the constants of ``p`` and
-    the terms of the held input ``u`` computed once per call instead of at every one of the
-    ``4 n`` evaluations: the plant's hot path (40 evaluations per 10 ms step).
+    for operation (so the same floats), with the parts inlined, the constants of ``p``
+    (:func:`plant_constants`) and the terms of the held input ``u`` (:func:`held_terms`)
+    computed once per call instead of at every one of the ``4 n`` evaluations. The plant
+    runs its compiled twin (:func:`compiled_rk4`) where numba is installed.
     """
-    g, R = ap.GAMMA_AIR, ap.R_AIR
-    ge, Re = p.gamma_e, p.R_e
-    crit_a = (2.0 / (g + 1.0)) ** (g / (g - 1.0))
-    k_a = 2.0 * g / (g - 1.0)
-    e1_a, e2_a = 2.0 / g, (g + 1.0) / g
-    crit_e = (2.0 / (ge + 1.0)) ** (ge / (ge - 1.0))
-    k_e = 2.0 * ge / (ge - 1.0)
-    e1_e, e2_e = 2.0 / ge, (ge + 1.0) / ge
-    th_lin = p.throttle_pr_lin
-    psi_lin_th = math.sqrt(k_a * (th_lin ** e1_a - th_lin ** e2_a))
-    den_th = 1.0 - th_lin
-    wg_lin = 0.99
-    psi_lin_wg = math.sqrt(k_e * (wg_lin ** e1_e - wg_lin ** e2_e))
-    den_wg = 1.0 - wg_lin
-    T_ic_guess = p.T_coolant + 15.0
-    sq_guess = math.sqrt(R * T_ic_guess)
-    p_amb, k_af, k_ic, k_es = p.p_amb, p.k_af, p.k_ic, p.k_es
-    w_ref, omega_ref, k_pr, offset = p.comp_w_ref, p.comp_omega_ref, p.comp_k_pr, p.comp_flow_offset
-    sq_ref = math.sqrt(298.0 / p.T_amb)
-    T_amb, comp_eff = p.T_amb, p.comp_efficiency
-    e_c = (g - 1.0) / g
-    eff_ic, T_cool = p.ic_effectiveness, p.T_coolant
-    cp_a = ap.CP_AIR
-    c_eta, r_c = p.c_eta_vol + 0.0, p.r_c
-    inv_ge = 1.0 / ge
-    r_c1 = r_c - 1.0
-    v_cyl, n_cyl = p.v_cyl, p.cylinders
-    afr_s, c1 = p.afr_s, p.c1
-    dT_comb = p.dT_comb
-    t_area = p.turbine_area
-    sq_lin = math.sqrt(0.02)
-    wg_area = p.wastegate_area
-    cp_e, t_eff = p.cp_e, p.turbine_efficiency
-    e_t = (ge - 1.0) / ge
-    h_im, T_wall = p.h_im, p.T_wall_im
-    cv = R / (g - 1.0)
-    cp = cv + R
-    V_im = p.V_im
-    G1, G2 = g * R / V_im, (g - 1.0) / V_im
-    V_ic, V_em = p.V_ic, p.V_em
-    J, eta_m, k_f = p.J_tc, p.eta_m, p.k_fric
-    sqrt, cos, radians = math.sqrt, math.cos, math.radians
+    (crit_a, k_a, e1_a, e2_a, th_lin, psi_lin_th, den_th,
+     crit_e, k_e, e1_e, e2_e, wg_lin, psi_lin_wg, den_wg,
+     T_ic_guess, sq_guess, p_amb, k_af, k_ic, k_es,
+     w_ref, omega_ref, k_pr, offset, sq_ref, T_amb, comp_eff, e_c,
+     eff_ic, T_cool, cp_a, c_eta, r_c, inv_ge, r_c1, v_cyl, n_cyl,
+     t_area, sq_lin, cp_e, t_eff, e_t, h_im, T_wall,
+     cv, cp, V_im, G1, G2, V_ic, V_em, J, eta_m, k_f, R, Re,
+     two, one_half) = plant_constants(p).values()
+    sqrt = math.sqrt
 
     def ff_a(pr: float) -> float:
         pr = max(pr, crit_a)
@@ -374,17 +400,7 @@ def plant_rk4(p: SIAirPathParams):
         return sqrt(k_e * (pr ** e1_e - pr ** e2_e))
 
     def run(x: list[float], u, h: float, steps: int) -> list[float]:
-        alpha, u_wg, speed, lam = u[0], u[1], u[2], u[3]
-        n = speed / 60.0
-        a = min(max(alpha, 0.0), 90.0)
-        area_th = p.throttle_a_max * (1.0 - cos(radians(a))) + p.throttle_a_leak
-        shape = 1.0 - p.eta_vol_speed_shape * (n / p.eta_vol_speed_ref - 1.0) ** 2
-        inv = 1.0 / (max(lam, 0.05) * afr_s)
-        charge_num, charge_den = 1.0 + c1 * inv, 1.0 + inv
-        lam_c = max(lam, 0.05)
-        eo = 1.0 + 1.0 / (lam_c * afr_s)
-        dT_phi = dT_comb * min(1.0 / lam_c, 1.05)
-        area_wg = wg_area * min(max(u_wg, 0.0), 1.0)
+        n, area_th, shape, charge_num, charge_den, eo, dT_phi, area_wg = held_terms(p, u)
         half, sixth = 0.5 * h, h / 6.0
 
         def rhs(p_ic: float, p_im: float, T_im: float, p_em: float, omega: float):
@@ -395,7 +411,7 @@ def plant_rk4(p: SIAirPathParams):
             p_af = p_amb - k_af * w_th0 * abs(w_th0)
             p_c = p_ic + k_ic * w_th0 * abs(w_th0)
             pr_c = p_c / p_af
-            pr0 = 1.0 + k_pr * (omega / omega_ref) ** 2
+            pr0 = 1.0 + k_pr * (omega / omega_ref) ** two
             r = min(max((pr_c - 1.0) / max(pr0 - 1.0, 0.02), -3.0), 1.0)
             w_max = w_ref * max(omega, 0.0) / omega_ref * (p_af / 101_325.0) * sq_ref
             w_c = w_max * (1.0 - r * abs(r)) + offset
@@ -410,7 +426,7 @@ def plant_rk4(p: SIAirPathParams):
             w_eo = w_ac * eo
             T_em = T_im + dT_phi * (0.6 + 0.5 * w_ac / (w_ac + 0.03))
             p_es = p_amb + k_es * w_eo * abs(w_eo)
-            z = 1.0 - min(p_es / p_em, 1.0) ** 1.5
+            z = 1.0 - min(p_es / p_em, 1.0) ** one_half
             root = sqrt(z) if z >= 0.02 else z / sq_lin
             w_t = t_area * p_em / sqrt(Re * T_em) * root
             if p_es <= p_em:
@@ -442,6 +458,22 @@ def plant_rk4(p: SIAirPathParams):
             x3 = x3 + sixth * (a3 + 2.0 * b3 + 2.0 * c3 + d3)
             x4 = x4 + sixth * (a4 + 2.0 * b4 + 2.0 * c4 + d4)
         return [x0, x1, x2, x3, x4]
+
+    return run
+
+
+def compiled_rk4(p: SIAirPathParams):
+    """:func:`plant_rk4` compiled (:mod:`cell.plant.airpath_kernel`): the same floats, about
+    fifty times as fast; :func:`plant_rk4` itself where numba is not installed."""
+    if not airpath_kernel.COMPILED:
+        return plant_rk4(p)
+    c = np.zeros(FIRST_TERM + len(airpath_kernel.TERMS))
+    c[:FIRST_TERM] = list(plant_constants(p).values())
+    kernel = airpath_kernel.steps
+
+    def run(x: list[float], u, h: float, steps: int) -> list[float]:
+        c[FIRST_TERM:] = held_terms(p, u)
+        return list(kernel(x[0], x[1], x[2], x[3], x[4], c, h, steps))
 
     return run
 
@@ -585,7 +617,7 @@ class SIAirPath(Plant):
         self._k_noise = 0
         self.crank_phase = 0.0
         self.x: list[float] = []
-        self._rk4 = plant_rk4(p)
+        self._rk4 = compiled_rk4(p)
 
     def _inputs(self, u: Mapping[str, float]) -> tuple[float, float, float]:
         speed = u.get("ENGINE_SPEED", 1800.0)

@@ -39,6 +39,7 @@ from cell.bus.e2e import E2ESpec, Receiver
 from cell.core.errors import ConfigError
 from cell.plant.composition import Composition
 from cell.runtime.samples import SampleLayout, find_sample_streams
+from cell.sim.frame_encode import frame_encoder
 from cell.sim.stream_encode import stream_encoder
 
 log = logging.getLogger(__name__)
@@ -115,6 +116,8 @@ class Simulator:
                                   "cycle time (GenMsgCycleTime)")
             period = max(1, round(m.cycle_time / 1000.0 / plant.dt))
             self.schedule.append((m, period, names))
+        #: each cyclic message's fast encoder (:mod:`cell.sim.frame_encode`); None: ``db.encode``
+        self._fast = {m.name: frame_encoder(db, m) for m, _, _ in self.schedule}
         #: sample streams the plants produce: (plant, layout, samples not yet in a frame)
         self.streams: list[tuple[object, SampleLayout, list]] = []
         #: each stream's bulk encoder (:mod:`cell.sim.stream_encode`), None: frame by frame
@@ -186,9 +189,18 @@ class Simulator:
         values = self.plant.signals
         own = self._own
         ts = self.t0 + self.plant.t
-        return out + [self.db.encode(m.name, {s: own[s]() if s in own else values[s] for s in names}
-                                     if m.name in self._own_messages else
-                                     {s: values[s] for s in names}, ts) for m, names in due]
+        fast = self._fast
+        for m, names in due:
+            enc = fast.get(m.name)
+            if m.name in self._own_messages:
+                vals = {s: own[s]() if s in own else values[s] for s in names}
+            elif enc is not None:
+                out.append(enc(values, ts))  # reads the message's signals only
+                continue
+            else:
+                vals = {s: values[s] for s in names}
+            out.append(enc(vals, ts) if enc is not None else self.db.encode(m.name, vals, ts))
+        return out
 
     def _stream_frames(self) -> list[can.Message]:
         """Frames of the stream samples produced so far, ``n`` whole samples per frame.

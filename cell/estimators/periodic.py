@@ -196,37 +196,55 @@ class PeriodicObserver:
         return W
 
     def _tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        n, m, p, d, D = self.n, self.m, self.p, self.d, self.step
-        L = self.gains.L
-        M = np.zeros((self.period, d, d))
-        N = np.zeros((self.period, d, p))
-        W = np.zeros((self.period, m, d))
-        for j in range(self.period):
-            a = self.angle(j)
-            Wj = self.w_row(j)
-            W[j] = Wj
-            # x is held half a sample early: x+ = phi x + gam (A0 w(a_j) + L y_j) spans the
-            # interval centred on the sample (no half-sample lag of y or w)
-            Wc = np.zeros((m, d))
-            Wc[:, n:] = Wj[:, n:]
-            M[j, :n, :n] = self._phi
-            M[j, :n, :] += self._gam @ self.A0 @ Wc
-            N[j, :n, :] = self._gam @ L
-            # the innovation at the sample: C (x + x+) / 2 - y; c+ = c - D G(a) innovation
-            G = np.zeros((self.nc, p))
-            off = self.bank_of(j) * self.nc_bank
-            G[off:off + m] = self.gains.Lk[0].real
-            for k in range(1, self.h + 1):
-                ek = np.exp(-1j * k * self.omega0 * a) * self.gains.Lk[k]
-                base = off + m * (2 * k - 1)
-                G[base:base + m] = ek.real
-                G[base + m:base + 2 * m] = ek.imag
-            Ex = 0.5 * self.C @ (np.eye(n) + self._phi)  # innovation from x
-            Ec = 0.5 * self.C @ self._gam @ self.A0 @ Wc[:, n:]  # ... from c
-            Ey = 0.5 * self.C @ self._gam @ L - np.eye(p)  # ... from y
-            M[j, n:, :n] = -D * G @ Ex
-            M[j, n:, n:] = np.eye(self.nc) - D * G @ Ec
-            N[j, n:, :] = -D * G @ Ey
+        """``M``, ``N`` and ``W`` at every angle index of the period, computed for all of them at
+        once (stacked products with the same association as one angle at a time, so the same
+        numbers as the per-angle construction, bit for bit)."""
+        n, m, p, d, D, P_ = self.n, self.m, self.p, self.d, self.step, self.period
+        L, h, w0 = self.gains.L, self.h, self.omega0
+        idx = np.arange(P_)
+        angles = [self.angle(j) for j in range(P_)]
+        banks = np.array([self.bank_of(j) for j in range(P_)])
+        eye_m = np.eye(m)
+        # W: c0 and (Re, Im) of each harmonic of the active bank, as w_row builds it
+        W = np.zeros((P_, m, d))
+        off = self.n + banks * self.nc_bank
+        cols = off[:, None] + np.arange(m)[None, :]
+        W[idx[:, None, None], np.arange(m)[None, :, None], cols[:, None, :]] = eye_m
+        for k in range(1, h + 1):
+            cs = np.array([2.0 * math.cos(k * w0 * a) for a in angles])
+            sn = np.array([-2.0 * math.sin(k * w0 * a) for a in angles])
+            base = off + m * (2 * k - 1)
+            blk = np.arange(m)
+            W[idx[:, None, None], blk[None, :, None], (base[:, None] + blk)[:, None, :]] = \
+                cs[:, None, None] * eye_m
+            W[idx[:, None, None], blk[None, :, None], (base[:, None] + m + blk)[:, None, :]] = \
+                sn[:, None, None] * eye_m
+        Wc = W.copy()
+        Wc[:, :, :n] = 0.0
+        M = np.zeros((P_, d, d))
+        N = np.zeros((P_, d, p))
+        # x is held half a sample early: x+ = phi x + gam (A0 w(a_j) + L y_j) spans the
+        # interval centred on the sample (no half-sample lag of y or w)
+        M[:, :n, :n] = self._phi
+        M[:, :n, :] += np.matmul(self._gam @ self.A0, Wc)
+        N[:, :n, :] = self._gam @ L
+        # the innovation at the sample: C (x + x+) / 2 - y; c+ = c - D G(a) innovation
+        G = np.zeros((P_, self.nc, p))
+        bank_rows = banks * self.nc_bank
+        rows0 = bank_rows[:, None] + np.arange(m)[None, :]
+        G[idx[:, None], rows0] = self.gains.Lk[0].real
+        a_arr = np.array(angles)
+        for k in range(1, h + 1):
+            ek = np.exp(-1j * k * w0 * a_arr)[:, None, None] * self.gains.Lk[k]
+            base = bank_rows + m * (2 * k - 1)
+            G[idx[:, None], base[:, None] + np.arange(m)[None, :]] = ek.real
+            G[idx[:, None], base[:, None] + m + np.arange(m)[None, :]] = ek.imag
+        Ex = 0.5 * self.C @ (np.eye(n) + self._phi)  # innovation from x
+        Ec = np.matmul(0.5 * self.C @ self._gam @ self.A0, Wc[:, :, n:])  # ... from c
+        Ey = 0.5 * self.C @ self._gam @ L - np.eye(p)  # ... from y
+        M[:, n:, :n] = np.matmul(-D * G, Ex)
+        M[:, n:, n:] = np.eye(self.nc) - np.matmul(D * G, Ec)
+        N[:, n:, :] = np.matmul(-D * G, Ey)
         return M, N, W
 
     def transition(self, j: int) -> tuple[np.ndarray, np.ndarray]:

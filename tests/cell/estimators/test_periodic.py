@@ -197,3 +197,51 @@ def test_the_period_must_be_whole_samples():
     with pytest.raises(ValueError, match="whole number"):
         PeriodicObserver([[-1.0]], [[1.0]], [[1.0]], 1, 0.7, design_full(
             [[-1.0]], [[1.0]], [[1.0]], [[-2.0]], [1.0, 1.0]), STEP)
+
+
+def _tables_one_angle_at_a_time(obs: PeriodicObserver):
+    """The observer's M, N, W built angle by angle, as the discretisation in the module
+    docstring reads (the plain reference of the stacked construction)."""
+    n, m, p, d, D = obs.n, obs.m, obs.p, obs.d, obs.step
+    L = obs.gains.L
+    M, N, W = np.zeros((obs.period, d, d)), np.zeros((obs.period, d, p)), np.zeros((obs.period, m, d))
+    for j in range(obs.period):
+        a = obs.angle(j)
+        Wj = obs.w_row(j)
+        W[j] = Wj
+        Wc = np.zeros((m, d))
+        Wc[:, n:] = Wj[:, n:]
+        M[j, :n, :n] = obs._phi
+        M[j, :n, :] += obs._gam @ obs.A0 @ Wc
+        N[j, :n, :] = obs._gam @ L
+        G = np.zeros((obs.nc, p))
+        off = obs.bank_of(j) * obs.nc_bank
+        G[off:off + m] = obs.gains.Lk[0].real
+        for k in range(1, obs.h + 1):
+            ek = np.exp(-1j * k * obs.omega0 * a) * obs.gains.Lk[k]
+            base = off + m * (2 * k - 1)
+            G[base:base + m] = ek.real
+            G[base + m:base + 2 * m] = ek.imag
+        Ex = 0.5 * obs.C @ (np.eye(n) + obs._phi)
+        Ec = 0.5 * obs.C @ obs._gam @ obs.A0 @ Wc[:, n:]
+        Ey = 0.5 * obs.C @ obs._gam @ L - np.eye(p)
+        M[j, n:, :n] = -D * G @ Ex
+        M[j, n:, n:] = np.eye(obs.nc) - D * G @ Ec
+        N[j, n:, :] = -D * G @ Ey
+    return M, N, W
+
+
+@pytest.mark.parametrize("which", ["uego-750", "uego-6000", "rod"])
+def test_stacked_tables_are_the_angle_by_angle_ones_bit_for_bit(which):
+    """The tables are built for every angle at once (a band design off the hot path in a
+    fraction of the time); the numbers are the per-angle construction's, to the last bit."""
+    from cell.estimators.cylinders import RodInversion, uego_design
+
+    if which == "rod":
+        observers = [RodInversion()._obs]  # four coefficient banks, two states
+    else:
+        observers = list(uego_design(0.025, 0.020, 3, 4.0, 4.0, float(which.split("-")[1]))[1])
+    for obs in observers:
+        for got, ref in zip((obs._M, obs._N, obs._W), _tables_one_angle_at_a_time(obs)):
+            assert got.shape == ref.shape
+            assert np.array_equal(got, ref)

@@ -13,8 +13,8 @@ from cell.app.cell import Cell
 
 from . import errors
 from .metrics import FrameRates, Metrics
-from .routes import (channels, engine, families, filters, health, metrics, observers, page,
-                     scenario, scripts, simulator, stream)
+from .routes import (channels, engine, families, filters, health, messages, metrics, observers,
+                     page, scenario, scripts, simulator, stream)
 from .schemas import ERROR_RESPONSES
 from .security import Security, SecurityMiddleware
 from .stream import StreamHub
@@ -58,6 +58,7 @@ def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
     errors.install(app)
     app.include_router(health.router)
     app.include_router(channels.router)
+    app.include_router(messages.router)
     app.include_router(families.router)
     present = {f["name"] for f in cell.families() if f["blocks"]}
     for fam in registry.FAMILIES.values():

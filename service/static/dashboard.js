@@ -97,7 +97,8 @@ function truthOf(name, prefix) {
   // the simulator's truth for an estimate: NAME_TRUE; for PREFIX_<STATE>, <STATE>_TRUE or
   // a unique ..._<STATE>_TRUE; an _EST or _HAT suffix names the estimate, not the quantity
   const rest = prefix && name.startsWith(prefix + "_") ? name.slice(prefix.length + 1) : name;
-  for (const c of new Set([name, rest, name.replace(/_(EST|HAT)$/, ""), rest.replace(/_(EST|HAT)$/, "")])) {
+  for (const c of new Set([name, rest, name.replace(/_(EST|HAT)$/, ""), rest.replace(/_(EST|HAT)$/, ""),
+                           stem(name), stem(rest)])) {
     if (exists(c + "_TRUE")) return c + "_TRUE";
     if (exists(c + "_TRUE_0")) return c + "_TRUE_0";  // a crank-angle stream's first sample
   }
@@ -317,7 +318,7 @@ function showPanelsWithData() {
   for (const p of TC.plots) {
     if (!p.auto) continue;
     const names = (p.traces || []).map(t => t.name).concat((p.members || []).map(m => m.name));
-    const has = names.some(n => TC.store.count(n) > 0 || ((TC.meta.get(n) || {}).time ?? null) !== null);
+    const has = names.some(n => TC.store.valued.has(n) || ((TC.meta.get(n) || {}).value ?? null) !== null);
     if (p.el.hidden === has) { p.el.hidden = !has; p.dirty = true; }
   }
 }

@@ -42,13 +42,14 @@ class Series {
 
 class Store {
   // Every channel's samples; capacity covers the longest window (10 min at 10 Hz, plus slack).
-  constructor(capacity) { this.capacity = capacity; this.series = new Map(); this.latest = 0; }
+  constructor(capacity) { this.capacity = capacity; this.series = new Map(); this.latest = 0; this.valued = new Set(); }
   get(name) {
     let s = this.series.get(name);
     if (!s) { s = new Series(name, this.capacity); this.series.set(name, s); }
     return s;
   }
   push(name, t, v) {
+    if (v === v) this.valued.add(name);  // a channel that has had a value (not only NaN)
     if (this.get(name).push(t, v) && t > this.latest) this.latest = t;
   }
   count(name) { const s = this.series.get(name); return s ? s.n : 0; }
@@ -56,7 +57,7 @@ class Store {
   merge(name, points) {
     const old = this.get(name), fresh = new Series(name, this.capacity);
     const first = old.n ? old.firstTime() : Infinity;
-    for (const [t, v] of points) if (t < first) fresh.push(t, v);
+    for (const [t, v] of points) if (t < first) { fresh.push(t, v); if (v === v) this.valued.add(name); }
     for (let i = 0; i < old.n; i++) fresh.push(old.t[old.at(i)], old.v[old.at(i)]);
     this.series.set(name, fresh);
     if (fresh.n && fresh.lastTime() > this.latest) this.latest = fresh.lastTime();
@@ -308,6 +309,7 @@ class TimePlot {
       g.font = "11px system-ui, sans-serif";
     }
     this.bannerText = banner;
+    this.scales = scales;
     if (this._drag) {
       const [a, b] = this._drag;
       g.fillStyle = "rgba(9,105,218,.12)"; g.fillRect(Math.min(a, b), top, Math.abs(a - b), bottom - top);

@@ -501,7 +501,7 @@ function connect() {
       if (!Number.isFinite(TC.view.start)) setStart();
       if (!TC.view.paused && !TC.view.zoom) dirtyAll(); else TC.plots.forEach(p => { if (p.members) p.dirty = true; });
     } else if (m.type === "subscribed") {
-      m.channels.forEach(c => { if (!TC.meta.has(c.name)) TC.meta.set(c.name, c); });
+      m.channels.forEach(c => { if (!TC.meta.has(c.name)) TC.newChannels = true; });
     } else if (m.type === "error") {
       $("stream-status").textContent = "stream: " + m.message;
     }
@@ -572,9 +572,22 @@ async function refreshChannels() {
   // new channels (a script uploaded), and the labels of value tables, which the stream lacks
   if (!TC.newChannels && !TC.hasLabels) return;
   TC.newChannels = false;
+  const before = TC.meta.size;
   const r = await api("GET", "/channels");
   if (r.ok) r.data.forEach(c => TC.meta.set(c.name, c));
   TC.hasLabels = [...TC.meta.values()].some(c => c.label !== undefined && c.label !== null);
+  if (TC.meta.size > before) await rebuildPanels();
+}
+
+async function rebuildPanels() {
+  // channels that came after the page was built (a cell still starting, a user's bus that
+  // began later, a script uploaded): the panels of the blocks and messages again, with them
+  for (const p of TC.plots.filter(x => x.auto)) p.el.remove();
+  TC.plots = TC.plots.filter(x => !x.auto);
+  buildPanels();
+  for (const c of TC.custom) if (c.plot.traces.length < c.channels.filter(exists).length) renderCustom(c);
+  await loadChannelHistory(plottedChannels());
+  showPanelsWithData();
 }
 
 // -- tuning: every block of every family the cell has -------------------------------------------

@@ -3,6 +3,7 @@
 from collections.abc import Callable
 
 from fastapi import APIRouter, FastAPI
+from fastapi_offline import FastAPIOffline
 from starlette.middleware.trustedhost import TrustedHostMiddleware
 
 from cell import __version__
@@ -12,8 +13,8 @@ from cell.app.cell import Cell
 
 from . import errors
 from .metrics import FrameRates, Metrics
-from .routes import (channels, engine, families, filters, health, metrics, observers, page,
-                     scenario, scripts, simulator, stream)
+from .routes import (channels, engine, families, filters, health, messages, metrics, observers,
+                     page, scenario, scripts, simulator, stream)
 from .schemas import ERROR_RESPONSES
 from .security import Security, SecurityMiddleware
 from .stream import StreamHub
@@ -22,6 +23,8 @@ from .routes.blocks import block_router
 #: Routes a block family has beyond GET/PATCH, by family name.
 FAMILY_ROUTES: dict[str, Callable[[APIRouter], None]] = {"filter": filters.add_routes,
                                                          "observer": observers.add_routes}
+#: Where Swagger UI's and ReDoc's own files are served.
+DOCS_ASSETS = "/static/docs"
 
 
 def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
@@ -30,7 +33,11 @@ def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
     ``security`` (default: from the cell's settings, else open with the default limits)
     decides who may change the cell and how large a request may be (:mod:`service.security`).
     """
-    app = FastAPI(
+    # /docs and /redoc from Swagger UI's and ReDoc's files shipped in the fastapi-offline
+    # package (no CDN: a test-cell network often has no internet), under /static/ so that
+    # they load without a token as the page's own files do
+    app = FastAPIOffline(
+        static_url=DOCS_ASSETS,
         title="testcell",
         version=__version__,
         description="Live values and tuning of an emulated engine test cell that speaks CAN.",
@@ -51,6 +58,7 @@ def create_app(cell: Cell, security: Security | None = None) -> FastAPI:
     errors.install(app)
     app.include_router(health.router)
     app.include_router(channels.router)
+    app.include_router(messages.router)
     app.include_router(families.router)
     present = {f["name"] for f in cell.families() if f["blocks"]}
     for fam in registry.FAMILIES.values():

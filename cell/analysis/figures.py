@@ -65,22 +65,32 @@ def _column(rows: Rows, i: int) -> np.ndarray:
 
 
 def plot_channels(path: str | Path, columns: list[str], rows: Rows, channels: list[str],
-                  title: str = "") -> Path:
-    """A PNG of the given channels over bus time, one panel per unit."""
+                  title: str = "", units: Mapping[str, str | None] | None = None) -> Path:
+    """A PNG of the given channels over time since the first row, one panel per unit, each
+    y axis labelled with its unit (``units``: channel -> unit; a channel not in it, or
+    with no unit, goes on the panel "(no unit)")."""
     plt = pyplot()
     t = _column(rows, 0)
     t = t - t[0] if t.size else t
-    fig, ax = plt.subplots(figsize=(11, 4.5))
-    for name in channels:
-        if name in columns:
+    units = units or {}
+    present = [n for n in channels if n in columns]
+    by_unit: dict[str, list[str]] = {}
+    for name in present:
+        by_unit.setdefault(units.get(name) or "", []).append(name)
+    groups = list(by_unit.items()) or [("", [])]
+    fig, axes = plt.subplots(len(groups), 1, figsize=(11, 1.2 + 3.3 * len(groups)), sharex=True,
+                             squeeze=False)
+    for ax, (unit, names) in zip(axes[:, 0], groups):
+        for name in names:
             y = _column(rows, columns.index(name))
             style = dict(lw=0.6, alpha=0.5) if name.endswith(("_L", "_R")) else dict(lw=1.4)
             ax.plot(t, y, label=name, **style)
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("mmH2O")
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+        ax.set_ylabel(unit or "(no unit)")
+        ax.grid(alpha=0.3)
+        if names:
+            ax.legend(loc="best", fontsize=8)
+    axes[0, 0].set_title(title)
+    axes[-1, 0].set_xlabel("time since the first row [s]")
     return save(fig, path, dpi=120)
 
 

@@ -37,7 +37,9 @@ def cmd_replay(settings: Settings, args: argparse.Namespace) -> int:
     if args.plot:
         # the back-pressure channels when the log has them, else what the replay computed
         wanted = channels or [c for c in PLOT_DEFAULT if c in result.columns] or result.columns[1:9]
-        plot_channels(args.plot, result.columns, result.rows, wanted, title=str(args.log))
+        units = {n: runtime.store.unit_of(n) for n in wanted}
+        plot_channels(args.plot, result.columns, result.rows, wanted, title=str(args.log),
+                      units=units)
         print(f"plot -> {args.plot}", file=sys.stderr)
     if result.error is not None:
         print(f"testcell replay: stopped at {result.error}; rows up to it were written to "

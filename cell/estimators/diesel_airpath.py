@@ -131,6 +131,16 @@ def guard_domain(x, u) -> tuple[np.ndarray, np.ndarray]:
     return x, u
 
 
+#: Units of the model's outputs (the measurements it predicts): N_T in rpm, as the sensor
+#: reads it, where its state is in krpm.
+OUTPUT_UNITS = {"P_IM": "kPa", "P_EM": "kPa", "N_T": "rpm"}
+
+
+def hat_units(prefix: str) -> dict[str, str]:
+    """The units of an observer's predicted measurements ``{prefix}_{output}_HAT``."""
+    return {f"{prefix}_{o}_HAT": OUTPUT_UNITS[o] for o in OUTPUTS}
+
+
 def default_model(params: AirPathParams | None = None) -> Model:
     """Seed 002's default model (eq. 1) of the air path, on the estimator core."""
     rhs = _CachedRhs()
@@ -152,7 +162,8 @@ def default_observer(name: str = "airpath-default", sensors: Sequence[str] = RUN
     return ObserverBlock(name, default_model(), measurements={s: SIGNAL[s] for s in sensors},
                          Q=list(Q_STATES), R=[R_DIAG[s] for s in sensors], x0=list(X0),
                          P0=[100.0, 400.0, 100.0], rate=rate, channels=channels,
-                         prefix="AIRPATH_DEF", **_contract(sensors, ()))
+                         prefix="AIRPATH_DEF", units=hat_units("AIRPATH_DEF"),
+                         **_contract(sensors, ()))
 
 
 def _contract(sensors: Sequence[str], biases: Sequence[str]) -> dict:
@@ -202,7 +213,8 @@ class AugmentedObserver(ObserverBlock):
                          Q=[*Q_STATES, *[Q_BIAS] * nq], R=[R_DIAG[s] for s in sensors],
                          x0=[*X0, *[0.0] * nq], P0=[100.0, 400.0, 100.0, *[100.0] * nq],
                          rate=rate, channels=channels, prefix="AIRPATH_AUG",
-                         units={f"Q_BIAS_{i + 1}": "" for i in range(nq)},
+                         units={**hat_units("AIRPATH_AUG"),
+                                **{f"Q_BIAS_{i + 1}": "" for i in range(nq)}},
                          **_contract(sensors, [f"Q_BIAS_{i + 1}" for i in range(nq)]))
 
     def _design_payload(self) -> dict[str, Any]:

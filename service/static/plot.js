@@ -42,16 +42,46 @@ class Series {
 
 class Store {
   // Every channel's samples; capacity covers the longest window (10 min at 10 Hz, plus slack).
-  constructor(capacity) { this.capacity = capacity; this.series = new Map(); this.latest = 0; }
+  constructor(capacity) { this.capacity = capacity; this.series = new Map(); this.latest = 0; this.valued = new Set(); }
   get(name) {
     let s = this.series.get(name);
     if (!s) { s = new Series(name, this.capacity); this.series.set(name, s); }
     return s;
   }
   push(name, t, v) {
+    if (v === v) this.valued.add(name);  // a channel that has had a value (not only NaN)
     if (this.get(name).push(t, v) && t > this.latest) this.latest = t;
   }
   count(name) { const s = this.series.get(name); return s ? s.n : 0; }
+  // older samples (a channel's history, loaded when it is first plotted) before those held
+  merge(name, points) {
+    const old = this.get(name), fresh = new Series(name, this.capacity);
+    const first = old.n ? old.firstTime() : Infinity;
+    for (const [t, v] of points) if (t < first) { fresh.push(t, v); if (v === v) this.valued.add(name); }
+    for (let i = 0; i < old.n; i++) fresh.push(old.t[old.at(i)], old.v[old.at(i)]);
+    this.series.set(name, fresh);
+    if (fresh.n && fresh.lastTime() > this.latest) this.latest = fresh.lastTime();
+  }
+}
+
+function clockText(t, step) {
+  // a bus time in seconds since the epoch as the local clock, with the decimals the step needs
+  const d = new Date(t * 1000), p = n => String(n).padStart(2, "0");
+  let s = `${p(d.getHours())}:${p(d.getMinutes())}:${p(d.getSeconds())}`;
+  if (step < 1) s += "." + String(d.getMilliseconds()).padStart(3, "0").slice(0, step < 0.1 ? 2 : 1);
+  return s;
+}
+
+// The time axis of every plot: seconds since the start of the data (view.start, bus time),
+// or the clock (bus time + view.clockOffset is seconds since the epoch)
+function timeAxis(view) {
+  if (view.axis === "clock") {
+    const off = view.clockOffset || 0;
+    return {base: -off, label: (t, step) => clockText(t + off, step), title: "clock time"};
+  }
+  const start = Number.isFinite(view.start) ? view.start : 0;
+  const since = Number.isFinite(view.start) ? ` (start ${clockText(start + (view.clockOffset || 0), 1)})` : "";
+  return {base: start, label: (t, step) => fmtTick(t - start, step), title: `seconds since start${since}`};
 }
 
 function niceStep(span, target) {
@@ -91,11 +121,23 @@ class TimePlot {
     this.view = opts.view;             // shared {window, paused, zoom: null | [t0, t1]}
     this.traces = opts.traces.map((tr, i) => ({color: TC_COLORS[i % TC_COLORS.length], ...tr}));
     this.hlines = opts.hlines || [];
+    this.fixed = opts.fixed || {};     // unit -> [lo, hi]: an axis that does not auto-scale
+    this.banner = opts.banner || null; // () -> text drawn across the plot (e.g. "disabled"), or ""
     this.units = [...new Set([...this.traces.map(t => t.unit), ...this.hlines.map(h => h.unit)])];
     this.el = document.createElement("div");
     this.el.className = "panel";
     this.el.dataset.panel = opts.id;
-    const h = document.createElement("h3"); h.textContent = opts.title; this.el.appendChild(h);
+    const h = document.createElement("h3");
+    this.titleEl = document.createElement("span"); this.titleEl.className = "title";
+    this.titleEl.textContent = opts.title; h.appendChild(this.titleEl);
+    if (opts.onRemove) {
+      const x = document.createElement("button"); x.type = "button"; x.className = "remove-panel";
+      x.textContent = "remove panel"; x.onclick = opts.onRemove; h.appendChild(x);
+    }
+    this.el.appendChild(h);
+    if (!this.traces.length && opts.empty) {
+      const e = document.createElement("div"); e.className = "hint"; e.textContent = opts.empty; this.el.appendChild(e);
+    }
     this.legend = document.createElement("div"); this.legend.className = "legend";
     this.traces.forEach(tr => {
       const item = document.createElement("span");
@@ -105,6 +147,12 @@ class TimePlot {
       item.appendChild(document.createTextNode(`${tr.name} [${tr.unit || "–"}]`));
       item.title = "click to show or hide";
       item.onclick = () => { tr.hidden = !tr.hidden; item.classList.toggle("off", tr.hidden); this.dirty = true; };
+      if (opts.onRemoveTrace) {
+        const x = document.createElement("b"); x.className = "remove-trace"; x.textContent = " ×";
+        x.title = "remove from this panel";
+        x.onclick = e => { e.stopPropagation(); opts.onRemoveTrace(tr.name); };
+        item.appendChild(x);
+      }
       this.legend.appendChild(item);
     });
     this.el.appendChild(this.legend);
@@ -118,7 +166,7 @@ class TimePlot {
     this.canvas.addEventListener("mousedown", e => { this._drag = [e.offsetX, e.offsetX]; });
     this.canvas.addEventListener("mousemove", e => { if (this._drag) { this._drag[1] = e.offsetX; this.dirty = true; } });
     window.addEventListener("mouseup", () => {
-      if (!this._drag) return;
+      if (!this._drag || !this.el.isConnected) return;
       const [a, b] = this._drag; this._drag = null;
       if (Math.abs(a - b) > 4 && this._geom) {
         const g = this._geom, x0 = Math.min(a, b), x1 = Math.max(a, b);
@@ -175,6 +223,10 @@ class TimePlot {
     const scales = new Map();
     this.units.forEach((u, k) => {
       let [lo, hi] = ranges.get(u);
+      if (this.fixed[u]) {
+        // a fixed axis (a valve's 0..100 %) that still shows a value beyond it
+        lo = Math.min(this.fixed[u][0], lo <= hi ? lo : Infinity); hi = Math.max(this.fixed[u][1], lo <= hi ? hi : -Infinity);
+      }
       if (!(lo <= hi)) { lo = 0; hi = 1; }
       if (hi - lo < 1e-9 * Math.max(1, Math.abs(hi))) {
         const c = (lo + hi) / 2, d = Math.max(1e-6, Math.abs(c) * 0.01); lo = c - d; hi = c + d;
@@ -186,15 +238,16 @@ class TimePlot {
     // frame, grid and time axis
     g.strokeStyle = "#d0d7de"; g.lineWidth = 1; g.strokeRect(left, top, right - left, bottom - top);
     const step = niceStep(t1 - t0, Math.max(2, (right - left) / 90));
-    // bus time may be seconds since the epoch: label ticks from a round offset, named on the axis
-    const offset = Math.abs(t0) >= 1e5 ? Math.floor(t0 / 1000) * 1000 : 0;
+    // ticks at round seconds since start, or of the clock
+    const axis = timeAxis(this.view);
+    this.axisTitle = axis.title;
     g.fillStyle = "#57606a"; g.textAlign = "center"; g.textBaseline = "top";
-    for (let t = Math.ceil(t0 / step) * step; t <= t1 + 1e-9; t += step) {
-      const x = left + (t - t0) * pxs;
+    for (let k = Math.ceil((t0 - axis.base) / step); axis.base + k * step <= t1 + 1e-9; k++) {
+      const t = axis.base + k * step, x = left + (t - t0) * pxs;
       g.strokeStyle = "#eaeef2"; g.beginPath(); g.moveTo(x, top); g.lineTo(x, bottom); g.stroke();
-      g.fillText(fmtTick(t - offset, step), x, bottom + 3);
+      g.fillText(axis.label(t, step), x, bottom + 3);
     }
-    g.fillText(offset ? `bus time (s) − ${offset}` : "bus time (s)", (left + right) / 2, bottom + 18);
+    g.fillText(axis.title, (left + right) / 2, bottom + 18);
     // one y axis per unit
     for (const [u, sc] of scales) {
       const x = sc.side === "L" ? left - sc.slot * AX : right + sc.slot * AX;
@@ -246,6 +299,17 @@ class TimePlot {
       g.fillText(`${h.label} ${fmtNum(v)}`, left + 4, below ? y + 2 : y - 2);
     }
     g.restore();
+    const banner = this.banner ? this.banner() : "";
+    if (banner) {
+      g.font = "bold 14px system-ui, sans-serif"; g.textAlign = "center"; g.textBaseline = "middle";
+      const w = g.measureText(banner).width + 24, cx = (left + right) / 2, cy = (top + bottom) / 2;
+      g.fillStyle = "rgba(255,255,255,.85)"; g.fillRect(cx - w / 2, cy - 14, w, 28);
+      g.strokeStyle = "#9a6700"; g.strokeRect(cx - w / 2, cy - 14, w, 28);
+      g.fillStyle = "#9a6700"; g.fillText(banner, cx, cy);
+      g.font = "11px system-ui, sans-serif";
+    }
+    this.bannerText = banner;
+    this.scales = scales;
     if (this._drag) {
       const [a, b] = this._drag;
       g.fillStyle = "rgba(9,105,218,.12)"; g.fillRect(Math.min(a, b), top, Math.abs(a - b), bottom - top);

@@ -12,6 +12,7 @@ Artifacts: a full-page screenshot goes to ``$TESTCELL_ARTIFACTS`` (default
 
 from __future__ import annotations
 
+import datetime
 import importlib
 import importlib.util
 import json
@@ -117,9 +118,15 @@ def test_page_loads_with_panels_axes_and_table_and_no_console_errors(diesel):
     for name, _value, unit, status, source, _t in rows:
         assert unit == api[name]["unit"] and source == api[name]["source"]
         assert status in ("ok", "stale", "invalid")
-    # the scenario control shows only when the API lists scenario keys (GET /scenario)
-    r = httpx.get(url + "/scenario", timeout=5)
-    assert page.is_visible("#scenario") == (r.status_code == 200 and bool(r.json()))
+    # the scenario control shows only the keys the running engine reads (GET /scenario's
+    # read_by_engine), less the trip reset's two steps (the reset button's): the large diesel
+    # is not offered the SI engine's fuel offsets or OSC
+    keys = httpx.get(url + "/scenario", timeout=5).json()
+    assert {k["key"] for k in keys if k["read_by_engine"]} == {"engine_reset_req", "engine_reset_confirm"}
+    offered = [k["key"] for k in keys if k["read_by_engine"] is not False
+               and not k["signal"].startswith("ENGINE_RESET_")]
+    assert page.is_visible("#scenario") == bool(offered)
+    assert page.locator("input[data-scenario]").count() == len(offered) == 0
     assert p.errors == []
 
 
@@ -361,6 +368,127 @@ def test_controller_setpoint_feedback_and_enable_from_the_page(diesel):
                 timeout=5).raise_for_status()
 
 
+def _panel(page, pid):
+    return f"TC.plots.find(p => p.el.dataset.panel === '{pid}')"
+
+
+def test_clicking_a_channel_in_the_table_plots_it_and_the_address_keeps_the_layout(diesel):
+    url, _, p = diesel
+    page = p.page
+    page.fill("#filter", "ENGINE_SPEED")
+    page.click('#rows tr[data-channel="ENGINE_SPEED"] td.plot')
+    page.wait_for_selector('[data-panel="custom-1"]')
+    assert page.evaluate(f"{_panel(page, 'custom-1')}.traces.map(t => t.name)") == ["ENGINE_SPEED"]
+    assert "ENGINE_SPEED [rpm]" in page.inner_text('[data-panel="custom-1"] .legend')
+    # the new trace holds the channel's history from before the click, as the server has it
+    server = httpx.get(url + "/channels/ENGINE_SPEED/history?seconds=600", timeout=5).json()["points"]
+    page.wait_for_function("TC.loadedHistory.has('ENGINE_SPEED') && TC.store.count('ENGINE_SPEED') > 50")
+    first = page.evaluate("TC.store.get('ENGINE_SPEED').firstTime()")
+    assert first == pytest.approx(server[0]["time"], abs=1e-6)
+    # a second click goes into the same panel (the target), on an axis of its own unit
+    page.fill("#filter", "VALVE_POS_R")
+    page.click('#rows tr[data-channel="VALVE_POS_R"] td.plot')
+    page.wait_for_function(f"{_panel(page, 'custom-1')}.traces.length === 2")
+    assert page.evaluate(f"{_panel(page, 'custom-1')}.units") == ["rpm", "%"]
+    assert "panels=ENGINE_SPEED,VALVE_POS_R" in page.evaluate("location.hash")
+    # a trace's × takes it out, and the address follows
+    page.click('[data-panel="custom-1"] .legend [data-channel="VALVE_POS_R"] .remove-trace')
+    page.wait_for_function("location.hash.includes('panels=ENGINE_SPEED&')")
+    page.fill("#filter", "")
+    assert [e for e in p.errors if "422" not in e] == []  # (the bad-Q test's refusals)
+
+
+def test_a_bookmarked_address_restores_the_layout_window_and_time_axis(diesel):
+    url, cell, p = diesel
+    context = p.page.context
+    page = context.new_page()
+    try:
+        page.goto(url + "/#panels=EXH_BP_L,ENGINE_SPEED|N_T&window=30&time=clock")
+        page.wait_for_function("window.TC && TC.ready && TC.messages > 2", timeout=30_000)
+        panels = page.evaluate("TC.custom.map(c => [c.id, c.plot.traces.map(t => t.name)])")
+        assert panels == [["custom-1", ["EXH_BP_L", "ENGINE_SPEED"]], ["custom-2", ["N_T"]]]
+        assert page.input_value("#window") == "30" and page.input_value("#time-axis") == "clock"
+        assert page.evaluate("TC.plots[0].range()[1] - TC.plots[0].range()[0]") == pytest.approx(30)
+        page.wait_for_function(f"{_panel(page, 'custom-2')}.axisTitle === 'clock time'")
+        # clock time: the bus time (seconds since the epoch here) as the local clock
+        t = cell.runtime.now
+        label = page.evaluate(f"timeAxis(TC.view).label({t}, 1)")
+        assert label == datetime.datetime.fromtimestamp(t).strftime("%H:%M:%S")
+        # since start: seconds from the earliest sample the page holds, ticks at round seconds
+        page.select_option("#time-axis", "start")
+        page.wait_for_function("location.hash.includes('time=start')")
+        start = page.evaluate("TC.view.start")
+        assert page.evaluate(f"timeAxis(TC.view).label({start} + 12, 1)") == "12"
+        assert page.evaluate(f"timeAxis(TC.view).base") == start
+        page.wait_for_function(f"{_panel(page, 'custom-2')}.axisTitle.startsWith('seconds since start')")
+        # an address edited by hand replaces the layout
+        page.evaluate("location.hash = '#panels=VALVE_POS_L'")
+        page.wait_for_function("TC.custom.length === 1 && TC.custom[0].channels[0] === 'VALVE_POS_L'")
+    finally:
+        page.close()
+
+
+def test_panels_are_honest_units_truth_split_quantities_and_a_disabled_controller(diesel):
+    url, cell, p = diesel
+    page = p.page
+    # the air-path observers' turbo speed: the state in krpm, its predicted measurement in rpm
+    # (as the sensor), each on its own axis, with the simulator's truth
+    pid = "observer-airpath-default-N_T"
+    names = page.evaluate(f"{_panel(page, pid)}.traces.map(t => [t.name, t.unit])")
+    assert ["N_T_EST_DEFAULT", "krpm"] in names and ["AIRPATH_DEF_N_T_HAT", "rpm"] in names
+    assert ["N_T_TRUE", "rpm"] in names and ["N_T", "rpm"] in names
+    with cell.runtime.lock:
+        hat, true = (cell.runtime.channels[n].value for n in ("AIRPATH_DEF_N_T_HAT", "N_T_TRUE"))
+    assert hat == pytest.approx(true, rel=0.1)  # rpm, not krpm
+    # every observer panel of a state has its truth where the simulator publishes one
+    for q, truth in (("DSL_P_IM", "DSL_P_IM_TRUE"), ("DSL_P_EM", "DSL_P_EM_TRUE")):
+        for obs in ("airpath-default", "airpath-augmented"):
+            assert truth in page.evaluate(f"{_panel(page, f'observer-{obs}-{q}')}.traces.map(t => t.name)")
+    # a disabled controller says so, on an axis of its whole output range (not a flat 40 %)
+    ctl = _panel(page, "controller-PI_R")
+    assert httpx.get(url + "/controllers/PI_R", timeout=5).json()["params"]["enable"] is False
+    page.wait_for_function(f"{ctl}.draw() >= 0 && {ctl}.bannerText === 'disabled'")
+    lo, hi = page.evaluate(f"[{ctl}.scales.get('%').lo, {ctl}.scales.get('%').hi]")
+    assert lo <= 0 and hi >= 100
+    assert "disabled" in page.inner_text('[data-panel="controller-PI_R"] h3')
+    r = httpx.patch(url + "/controllers/PI_R", json={"enable": True}, timeout=5)
+    try:
+        assert r.status_code == 200
+        page.wait_for_function(f"{ctl}.draw() >= 0 && {ctl}.bannerText === ''", timeout=10_000)
+        assert "mode " in page.inner_text('[data-panel="controller-PI_R"] h3')
+    finally:
+        httpx.patch(url + "/controllers/PI_R", json={"enable": False}, timeout=5).raise_for_status()
+
+
+def test_si_turbo_observer_outputs_split_by_quantity(diesel, tmp_path):
+    """The SI engine's observers' outputs (from its own block set) as the page groups them:
+    cylinder estimates apart from harmonics; lambda, SOX, phi and OSC apart."""
+    from dataclasses import replace
+
+    from cell.app.assemble import build_runtime
+    from cell.core.settings import Settings
+
+    _, _, p = diesel
+    from cell.app.tuning import TuningStore
+
+    settings = replace(Settings(engine="si-turbo"), state=tmp_path / "tuning.json")
+    store = TuningStore(settings.state)
+    store.load()
+    rt, _ = build_runtime(settings, store)
+    blocks = {b.name: {"outputs": list(b.outputs), "inputs": list(b.inputs)} for b in rt.blocks.values()
+              if b.name in ("twc", "afr_inversion")}
+    groups = p.page.evaluate("""bs => Object.fromEntries(Object.entries(bs).map(([k, o]) =>
+        [k, quantityGroups(o).groups.map(g => [g.key, g.outputs])]))""", blocks)
+    twc = dict(groups["twc"])
+    assert twc["SOX"] == ["SOX_EST", "SOX_EST_SD"] and twc["OSC"] == ["OSC_EST", "OSC_EST_SD"]
+    assert twc["PHI"] == ["PHI_1_EST", "PHI_2_EST", "PHI_3_EST"] and twc["LAMBDA_MID"] == ["LAMBDA_MID_EST"]
+    afr = dict(groups["afr_inversion"])
+    assert afr["AFR_CYL"] == [f"AFR_CYL_{k}_EST" for k in range(1, 5)]
+    assert afr["AFR_HARM"] == ["AFR_HARM_1", "AFR_HARM_2", "AFR_HARM_3"]
+    assert afr["AFR_MANIFOLD"] == ["AFR_MANIFOLD_EST"]
+    assert max(len(v) for v in afr.values()) <= 4  # no panel of 13 traces
+
+
 BAD_SCRIPT = """// a script with a syntax error on line 4
 [formulas]
 public BAD_OUT
@@ -441,7 +569,7 @@ def scenario_stand_in(sent: list):
     return router
 
 
-def test_observer_panels_are_built_from_the_api_grouped_by_unit(chromium, toy_plugin, tmp_path):
+def test_observer_panels_are_built_from_the_api_one_per_quantity(chromium, toy_plugin, tmp_path):
     sent: list = []
     # the scenario routes of issue 8 where they exist; else a stand-in with their contract
     real = importlib.util.find_spec("service.routes.scenario") is not None
@@ -452,12 +580,13 @@ def test_observer_panels_are_built_from_the_api_grouped_by_unit(chromium, toy_pl
             p = Page(context, url)
             page = p.page
             panels = page.eval_on_selector_all(".panel", "els => els.map(e => e.dataset.panel)")
-            # one panel per unit, and the observer contract's confidence (no unit) on its own
-            assert panels == ["observer-toy-m", "observer-toy-m/s", "observer-toy-none"]
-            assert "TOY_CONF" in page.inner_text('[data-panel="observer-toy-none"] .legend')
-            legend = page.inner_text('[data-panel="observer-toy-m/s"] .legend')
+            # one panel per quantity (position, velocity), and the observer contract's
+            # confidence on its own
+            assert panels == ["observer-toy-POS", "observer-toy-VEL", "observer-toy-confidence"]
+            assert "TOY_CONF" in page.inner_text('[data-panel="observer-toy-confidence"] .legend')
+            legend = page.inner_text('[data-panel="observer-toy-VEL"] .legend')
             assert "TOY_EST_VEL [m/s]" in legend and "TOY_VEL_TRUE [m/s]" in legend
-            legend = page.inner_text('[data-panel="observer-toy-m"] .legend')
+            legend = page.inner_text('[data-panel="observer-toy-POS"] .legend')
             for name in ("TOY_EST_POS [m]", "TOY_POS_TRUE [m]", "TOY_EST_TOY_POS_HAT [m]", "TOY_POS [m]"):
                 assert name in legend
             # its Q and R are tunable on the page like a filter's
@@ -474,9 +603,13 @@ def test_observer_panels_are_built_from_the_api_grouped_by_unit(chromium, toy_pl
                 {"name": f"AFR_CYL_{k}_EST", "label": str(k), "k": k} for k in (1, 2, 3, 10)]}]
             assert p.errors == []
             # the scenario control appears when the API lists scenario keys, and posts them
-            keys = httpx.get(url + "/scenario", timeout=5).json()
+            keys = [k for k in httpx.get(url + "/scenario", timeout=5).json()
+                    if k["read_by_engine"] is not False and not k["signal"].startswith("ENGINE_RESET_")]
             assert page.is_visible("#scenario") and keys
+            assert page.locator("input[data-scenario]").count() == len(keys)
             key = keys[0]
+            if key.get("comment"):  # its full label: the key and the DBC's comment
+                assert key["comment"] in page.inner_text("#scenario")
             field = page.locator(f'input[data-scenario="{key["key"]}"]')
             too_big = (key["maximum"] if key.get("maximum") is not None else 1e9) * 2 + 1
             field.fill(str(too_big))

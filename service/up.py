@@ -28,6 +28,7 @@ from cell.bus.interface import open_bus, resolve
 from cell.core import registry
 from cell.core.errors import ConfigError
 from cell.core.settings import Settings, add_sim_options
+from cell.estimators.contract import read_design
 
 from .simproc import EXIT_SIM_LOST, ON_EXIT, SimSupervisor
 
@@ -95,7 +96,8 @@ def cmd_up(settings: Settings, args: argparse.Namespace) -> int:
     runtime, scripts = build_runtime(settings, store)
     if not settings.no_sim:
         sim.build(settings, runtime.db)  # refuse a bad engine or frame set before starting
-    store.restore(runtime)
+    # a --design given on the command line wins over the design saved by PUT
+    store.restore(runtime, keep_designs=[read_design(p)["observer"] for p in settings.designs])
     bus = open_bus(spec)
     live = None
     supervisor = None

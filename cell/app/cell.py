@@ -21,7 +21,7 @@ from cell.app.live import LiveCell
 from cell.app.tuning import TuningStore
 from cell.bus.scenario import describe_frames, scenario_frames, scenario_keys
 from cell.core import registry
-from cell.core.errors import UnknownBlockError
+from cell.core.errors import ConfigError, UnknownBlockError
 from cell.core.settings import Settings
 from cell.runtime import supervision
 from cell.runtime.blocks import Block
@@ -246,12 +246,22 @@ class Cell:
             return params
 
     def load_design(self, name: str, design: dict[str, Any], source: str = "design") -> None:
-        """Load a design into the observer ``name`` (all or nothing: a bad design raises
-        :class:`~cell.core.errors.ConfigError` naming the field and the previous one stays)."""
+        """Load a design into the observer ``name`` and save it in the tuning file, so that a
+        restart keeps it (all or nothing: a bad design, or one that cannot be saved, raises
+        :class:`~cell.core.errors.ConfigError` naming why, and the previous one stays)."""
         from cell.app.assemble import load_design
 
         with self.runtime.lock:
+            block = self.runtime.blocks.get(name)
+            before = block.design() if callable(getattr(block, "design", None)) else None
             load_design(self.runtime, design, source, name=name)
+            if self.tuning is not None:
+                try:
+                    self.tuning.record_design(name, design)
+                except ConfigError:
+                    if before is not None:  # not saved: the previous design comes back
+                        load_design(self.runtime, before, "the previous design", name=name)
+                    raise
 
     # -- commands to the bus ----------------------------------------------------------
     def send(self, frames: Iterable[can.Message]) -> None:

@@ -1,6 +1,8 @@
 """Saving accepted tuning atomically and restoring it at start-up.
 
-The file is JSON, ``{"filters": {name: {param: value}}, ...}``. It is written to a
+The file is JSON, ``{"filters": {name: {param: value}}, ...}``, and ``{"designs": {observer:
+design}}`` for the designs loaded live (``PUT /observers/{name}/design``), restored before
+the parameters. It is written to a
 temporary file in the same folder, flushed to disk (``fsync``), renamed over the old one
 (``os.replace``) and the folder synced, so a crash or ``kill -9`` at any moment leaves the
 old file or the new one, never half a file. A file that cannot be read, or whose shape is
@@ -17,6 +19,7 @@ import os
 import re
 
 from pathlib import Path
+from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any
 
 from cell.core.errors import ConfigError, ParamError, UnknownBlockError
@@ -29,6 +32,9 @@ if TYPE_CHECKING:
     from cell.runtime.scheduler import Runtime
 
 log = logging.getLogger(__name__)
+
+#: The section of the designs loaded live, by observer.
+DESIGNS = "designs"
 
 
 def state_root() -> Path:
@@ -108,17 +114,31 @@ class TuningStore:
         self.data = data
         return self.data
 
-    def restore(self, runtime: Runtime) -> list[str]:
-        """Apply saved parameters to the runtime's blocks; returns what was skipped and why.
+    def restore(self, runtime: Runtime, keep_designs: Iterable[str] = ()) -> list[str]:
+        """Apply saved designs, then saved parameters, to the runtime's blocks; returns what
+        was skipped and why.
 
-        Every section of the file that is a block family's (:data:`cell.core.registry.FAMILIES`)
-        is restored; other sections belong to their own owners (``scripts``) and are kept.
+        The ``designs`` section is loaded first (an observer in ``keep_designs``, given its
+        design on the command line, keeps that one). Every section of the file that is a block
+        family's (:data:`cell.core.registry.FAMILIES`) is restored; other sections belong to
+        their own owners (``scripts``) and are kept.
         """
         from cell import app
+        from cell.app.assemble import load_design
         from cell.core import registry
 
         app.load()
         skipped = []
+        keep = set(keep_designs)
+        for name, design in self.data.get(DESIGNS, {}).items():
+            if name in keep:
+                continue
+            try:
+                load_design(runtime, design, f"tuning file {self.path}: {DESIGNS}.{name}", name=name)
+            except ConfigError as exc:
+                skipped.append(f"{DESIGNS}/{name}: {exc}")
+                log.warning("tuning file %s: not restoring the design of %s: %s", self.path,
+                            name, exc)
         for section, entries in self.data.items():
             fam = registry.family_of_section(section)
             if fam is None:
@@ -139,6 +159,23 @@ class TuningStore:
         """Remember a block's accepted parameters and save the whole file atomically."""
         self.data.setdefault(section, {})[name] = params
         self.save()
+
+    def record_design(self, name: str, design: dict[str, Any]) -> None:
+        """Remember the design loaded into observer ``name`` and save the whole file
+        atomically (:class:`ConfigError` when it cannot be written; the memory is undone)."""
+        designs = self.data.setdefault(DESIGNS, {})
+        before = designs.get(name)
+        designs[name] = design
+        try:
+            self.save()
+        except ConfigError:
+            if before is None:
+                designs.pop(name)
+                if not designs:
+                    self.data.pop(DESIGNS)
+            else:
+                designs[name] = before
+            raise
 
     def save(self) -> None:
         try:

@@ -336,6 +336,59 @@ def test_put_design_loads_live_and_refuses_a_bad_one_with_422(tmp_path):
     assert client.put("/observers/nope/design", json={"observer": "nope"}).status_code == 422
 
 
+def test_a_design_put_live_is_saved_and_survives_a_restart(tmp_path):
+    db = load()
+    path = tmp_path / "state" / "tuning.json"
+    store = TuningStore(path)
+    store.load()
+    client = local_client(create_app(Cell(runtime=Runtime(db, [TWCObserver()]), tuning=store)))
+    design = {"observer": "twc", "identified": {"lambda_lag": "composition", "tau_lambda": 0.15}}
+    assert client.put("/observers/twc/design", json=design).status_code == 200
+    assert json.loads(path.read_text())["designs"]["twc"] == design
+    # a bad design is refused and the saved one stays
+    bad = {"observer": "twc", "identified": {"tau_lambda": 9.0}}
+    assert client.put("/observers/twc/design", json=bad).status_code == 422
+    assert json.loads(path.read_text())["designs"]["twc"] == design
+
+    # the restart: a new runtime and store over the same file
+    rt = Runtime(db, [TWCObserver()])
+    again = TuningStore(path)
+    again.load()
+    assert again.restore(rt) == []
+    assert rt.blocks["twc"].sensor_model() == {"lambda_lag": "composition", "tau_lambda": 0.15,
+                                               "dead_time": 0.0, "kinetics_scale": 1.0}
+    # a design given on the command line (--design) wins over the saved one
+    rt = Runtime(db, [TWCObserver()])
+    assert again.restore(rt, keep_designs=["twc"]) == []
+    assert rt.blocks["twc"].lambda_lag == "lambda"
+
+
+def test_a_saved_design_that_no_longer_loads_is_skipped_by_name(tmp_path):
+    path = tmp_path / "tuning.json"
+    path.write_text(json.dumps({"designs": {"twc": {"observer": "twc",
+                                                    "identified": {"lambda_lag": "voltage"}}},
+                                "observers": {"twc": {"R": [3e-4]}}}))
+    rt = Runtime(load(), [TWCObserver()])
+    store = TuningStore(path)
+    store.load()
+    skipped = store.restore(rt)
+    assert len(skipped) == 1 and "designs/twc" in skipped[0]
+    assert "identified.lambda_lag" in skipped[0]
+    assert rt.blocks["twc"].lambda_lag == "lambda" and rt.blocks["twc"].R[0] == 3e-4
+
+
+def test_a_design_that_cannot_be_saved_is_not_loaded(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    store = TuningStore(blocker / "tuning.json")  # its folder is a file: no write succeeds
+    rt = Runtime(load(), [TWCObserver()])
+    client = local_client(create_app(Cell(runtime=rt, tuning=store)))
+    r = client.put("/observers/twc/design", json={"observer": "twc",
+                                                  "identified": {"tau_lambda": 0.2}})
+    assert r.status_code >= 400 and "cannot save tuning" in r.json()["detail"]
+    assert rt.blocks["twc"].tau_lambda == 0.1 and "designs" not in store.data
+
+
 def test_design_and_state_files_on_replay(tmp_path):
     from cell.app.assemble import build_runtime
 

@@ -419,7 +419,7 @@ def test_a_bookmarked_address_restores_the_layout_window_and_time_axis(diesel):
         page.wait_for_function("location.hash.includes('time=start')")
         start = page.evaluate("TC.view.start")
         assert page.evaluate(f"timeAxis(TC.view).label({start} + 12, 1)") == "12"
-        assert page.evaluate(f"timeAxis(TC.view).base") == start
+        assert page.evaluate("timeAxis(TC.view).base") == start
         page.wait_for_function(f"{_panel(page, 'custom-2')}.axisTitle.startsWith('seconds since start')")
         # an address edited by hand replaces the layout
         page.evaluate("location.hash = '#panels=VALVE_POS_L'")

@@ -83,7 +83,8 @@ def test_with_a_token_changes_from_the_page_fail_until_it_is_entered_and_the_res
         # limit); then the page's button resets it: the request, then the confirm with its
         # challenge, which the simulator answers with DONE and a running engine
         deadline = time.monotonic() + 60
-        while max(_value(cell, "EXH_BP_L_TRUE"), _value(cell, "EXH_BP_R_TRUE")) > BP_LIMIT - RESET_MARGIN - 20:
+        clear = BP_LIMIT - RESET_MARGIN - 20
+        while max(_value(cell, "EXH_BP_L_TRUE"), _value(cell, "EXH_BP_R_TRUE")) > clear:
             assert time.monotonic() < deadline, "the trip's cause did not clear"
             time.sleep(0.2)
         page.click("#reset-trip")

@@ -18,7 +18,7 @@ from cell.runtime.plausibility import Limit, Plausibility, limits_of, parse_entr
 from cell.runtime.scheduler import Runtime
 
 DATA = Path(__file__).resolve().parents[2] / "data" / "dbc"
-REAL = Path("/work/shared/realdata/dbc")
+REAL = Path(__file__).resolve().parents[3].parent / "shared" / "realdata" / "dbc"  # <repo>/../shared
 
 
 def raw_frame(db, message, raw, t):

@@ -18,13 +18,13 @@ import cantools
 
 from cell.sim.frame_encode import frame_encoder, message_encoder
 
-REAL = Path("/work/shared/realdata/dbc")
+REAL = Path(__file__).resolve().parents[3].parent / "shared" / "realdata" / "dbc"  # <repo>/../shared
 REAL_FILES = ["toyota_prius_2010_pt.dbc", "hyundai_2015_ccan.dbc", "vw_mqb.dbc"]
 
 
 def _values(message, rng, case):
     out = {}
-    for k, s in enumerate(message.signals):
+    for s in message.signals:
         lo = -1e3 if s.minimum is None else float(s.minimum)
         hi = 1e3 if s.maximum is None else float(s.maximum)
         span = max(hi - lo, 1.0)
